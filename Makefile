@@ -1,0 +1,45 @@
+# Two commands do all set-up on a fresh machine:
+#   make demo   creates .venv, installs elevmap into it, runs the demo (writes demo.rrd)
+#   make test   same set-up, then the whole test suite
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test bench install system-deps clean
+
+demo: $(STAMP)
+	$(BIN)/elevmap demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/elevmap bench
+
+install: $(STAMP)
+
+# pyrealsense2 links libusb-1.0. Install it with apt when we are root; otherwise say what is missing.
+# Only the RealSense sources need it: everything else works without.
+system-deps:
+	@if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then :; \
+	elif [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing libusb-1.0-0 (needed by pyrealsense2)"; \
+	  (apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1 || \
+	   (apt-get update -q >/dev/null 2>&1 && apt-get install -y -q libusb-1.0-0 >/dev/null 2>&1)) || \
+	  echo "warning: could not install libusb-1.0-0; RealSense sources will be unavailable"; \
+	else \
+	  echo "note: libusb-1.0 is missing; install it (Debian/Ubuntu: sudo apt-get install libusb-1.0-0)"; \
+	  echo "      to read RealSense cameras and .bag/.db3 files. Everything else works without it."; \
+	fi
+
+$(VENV)/bin/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): pyproject.toml | $(VENV)/bin/python system-deps
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,57 @@
+"""The Intel RealSense D435 noise model of Ahn et al. (2019) and its propagation into 3-D covariances.
+
+Public API
+----------
+D435, SensorModel                       the paper's coefficients, geometry and default intrinsics
+axial_sigma(z, theta)                   sigma_z [m]
+expected_rms_error(z, ...)              the paper's equation (1) [m]
+depth_to_metres, deproject              depth image -> metres -> camera-frame points
+incidence_angles, depth_edges           theta per pixel; left/right depth-edge masks
+point_covariances                       (N, 3, 3) camera-frame covariances
+to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
+depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
+
+This package never imports ``elevmap``, rerun, pyrealsense2 or OpenCV.
+"""
+
+from .checks import (
+    check_angles,
+    check_covariances,
+    check_depth,
+    check_intrinsics,
+    check_points,
+    check_pose_cov,
+    check_transform,
+)
+from .covariance import point_covariances, pose_jacobian, skew, to_map_frame
+from .d435 import D435, THETA_MAX_DEFAULT, SensorModel, axial_sigma, expected_rms_error
+from .geometry import deproject, depth_edges, depth_to_metres, default_block_px, incidence_angles
+from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
+
+__all__ = [
+    "D435",
+    "SensorModel",
+    "THETA_MAX_DEFAULT",
+    "axial_sigma",
+    "expected_rms_error",
+    "depth_to_metres",
+    "deproject",
+    "incidence_angles",
+    "depth_edges",
+    "default_block_px",
+    "point_covariances",
+    "to_map_frame",
+    "pose_jacobian",
+    "skew",
+    "MapPoints",
+    "Workspace",
+    "depth_to_map_points",
+    "depth_to_map_points_reference",
+    "check_angles",
+    "check_covariances",
+    "check_depth",
+    "check_intrinsics",
+    "check_points",
+    "check_pose_cov",
+    "check_transform",
+]

@@ -1,0 +1,278 @@
+"""The Intel RealSense D435 and the empirical noise model of Ahn et al. (2019).
+
+Reference: M. S. Ahn, H. Chae, D. Noh, H. Nam, D. Hong, "Analysis and Noise Modeling of the Intel
+RealSense D435 for Mobile Robots", 16th International Conference on Ubiquitous Robots (UR), 2019.
+
+Axial (depth) noise, the paper's fit over 0.4-2.1 m and 0-75 deg of target rotation::
+
+    sigma_z(z, theta) = 0.001063 + 0.0007278 z + 0.003949 z^2 + 0.022 z^(3/2) theta / (pi/2 - theta)^2   [m]
+
+with z the depth [m] and theta [rad] the angle between the surface normal and the optical axis (the
+paper rotates its target about the camera's y axis, theta_y; we use the same formula for any tilt).
+Lateral noise on depth discontinuities, 90th percentiles: sigma_L = 0.0432 m on left edges (the
+shadowed side of the left-imager-referenced depth), sigma_R = 0.0407 m on right edges.
+
+Expected stereo RMS error, the paper's equation (1) (Intel's depth-resolution formula)::
+
+    e = d^2 s / (f b),   f = 0.5 p_x / tan(V_h / 2)
+
+with d the distance [m], s the subpixel accuracy [px] (0.08 is Intel's typical value), b the baseline
+[m], p_x the horizontal resolution [px] and V_h the horizontal field of view.
+
+Field of view and default intrinsics
+------------------------------------
+Intel's white paper "Subpixel Linearity Improvement for Intel RealSense Depth Camera D400 Series" uses
+HFOV = 90 deg for the D435 in this formula, and real units agree: the depth stream of a typical D435
+at 848x480 has fx ~ 425 px, i.e. HFOV = 2 atan(424 / 425) = 89.9 deg (the datasheet quotes
+87 +- 3 deg). The 16:9 modes (1280x720, 848x480, 424x240) therefore use HFOV = 90 deg and
+fx = fy = 0.5 W / tan(45 deg) = W / 2. The 4:3 mode 640x480 is a centre crop of the imager at 0.6 of
+its 1280-wide scale, so f = 0.6 * 640 = 384 px and HFOV = 2 atan(320 / 384) = 79.6 deg; the librealsense
+unit-test D435 recording (640x480, fx = 390.4 px, HFOV 78.7 deg) agrees within unit-to-unit spread.
+The principal point is the image centre, ((W - 1) / 2, (H - 1) / 2), in the pixel-centre convention
+of RealSense and OpenCV (integer coordinates are pixel centres).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from .checks import MAX_PLAUSIBLE_DEPTH_M, check_positive_scalar
+
+__all__ = ["SensorModel", "D435", "axial_sigma", "expected_rms_error", "THETA_MAX_DEFAULT"]
+
+#: Default cap on the incidence angle [rad]: 80 deg. The paper measured up to 75 deg; its theta term
+#: diverges at 90 deg, where a stereo camera sees nothing at all. At 80 deg and 1 m sigma_z is already
+#: 1.0 m, so a capped point carries almost no height information, yet its variance stays finite.
+THETA_MAX_DEFAULT = math.radians(80.0)
+
+_HFOV_16_9_DEG = 90.0
+_HFOV_4_3_DEG = math.degrees(2.0 * math.atan(320.0 / 384.0))
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """A depth camera's geometry and its noise model (coefficients of Ahn et al.'s functional form).
+
+    Attributes
+    ----------
+    name : str
+        Free-form name ("D435 (Ahn et al. 2019)" or a user's own fit).
+    axial_coefficients : tuple of 4 floats
+        (c0 [m], c1 [-], c2 [1/m], c_theta [m^-1/2]) of
+        sigma_z = c0 + c1 z + c2 z^2 + c_theta z^(3/2) theta / (pi/2 - theta)^2.
+    sigma_L, sigma_R : float
+        Lateral noise [m] across left and right depth edges.
+    baseline_m : float
+        Stereo baseline [m].
+    subpixel : float
+        Subpixel disparity accuracy [px] used by ``expected_rms_error``.
+    theta_max_rad : float
+        Incidence angles at or beyond this are capped to it [rad].
+    hfov_deg : dict
+        Horizontal field of view [deg] per (width, height) mode.
+    """
+
+    name: str = "D435 (Ahn et al. 2019)"
+    axial_coefficients: tuple = (0.001063, 0.0007278, 0.003949, 0.022)
+    sigma_L: float = 0.0432
+    sigma_R: float = 0.0407
+    baseline_m: float = 0.050
+    subpixel: float = 0.08
+    theta_max_rad: float = THETA_MAX_DEFAULT
+    hfov_deg: dict = field(
+        default_factory=lambda: {
+            (1280, 720): _HFOV_16_9_DEG,
+            (848, 480): _HFOV_16_9_DEG,
+            (640, 480): _HFOV_4_3_DEG,
+            (424, 240): _HFOV_16_9_DEG,
+        }
+    )
+
+    # -- the paper's coefficients under their own names -------------------------------------------
+    @property
+    def c0(self) -> float:
+        return float(self.axial_coefficients[0])
+
+    @property
+    def c1(self) -> float:
+        return float(self.axial_coefficients[1])
+
+    @property
+    def c2(self) -> float:
+        return float(self.axial_coefficients[2])
+
+    @property
+    def c_theta(self) -> float:
+        return float(self.axial_coefficients[3])
+
+    @property
+    def modes(self) -> tuple:
+        """The (width, height) modes with default intrinsics."""
+        return tuple(self.hfov_deg)
+
+    def focal_px(self, width: int, height: int) -> float:
+        """Focal length [px] of a mode: fx = fy = 0.5 width / tan(HFOV / 2)."""
+        key = (int(width), int(height))
+        if key not in self.hfov_deg:
+            raise ValueError(f"no default intrinsics for {width}x{height}; known modes: {sorted(self.hfov_deg)}")
+        return 0.5 * key[0] / math.tan(math.radians(self.hfov_deg[key]) / 2.0)
+
+    def intrinsics(self, width: int = 848, height: int = 480) -> np.ndarray:
+        """Default 3x3 camera matrix K [px] of a mode (principal point at the image centre)."""
+        f = self.focal_px(width, height)
+        return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+    def vfov_deg(self, width: int = 848, height: int = 480) -> float:
+        """Vertical field of view [deg] implied by square pixels."""
+        return math.degrees(2.0 * math.atan(0.5 * height / self.focal_px(width, height)))
+
+    def params_array(self) -> np.ndarray:
+        """The noise parameters packed for numba kernels: c0, c1, c2, c_theta, theta_max, sigma_L, sigma_R."""
+        return np.array([*map(float, self.axial_coefficients), self.theta_max_rad, self.sigma_L, self.sigma_R])
+
+    def with_coefficients(self, coefficients, **changes) -> "SensorModel":
+        """A copy with other axial coefficients (for example a user's own fit)."""
+        c = tuple(float(x) for x in coefficients)
+        if len(c) != 4 or not all(np.isfinite(c)):
+            raise ValueError(f"axial coefficients must be 4 finite numbers, got {coefficients!r}")
+        return replace(self, axial_coefficients=c, **changes)
+
+    # -- persistence: a user's fit replaces the paper's everywhere --------------------------------
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["axial_coefficients"] = list(self.axial_coefficients)
+        d["hfov_deg"] = [[w, h, v] for (w, h), v in self.hfov_deg.items()]
+        d["format"] = "elevmap-sensor-model/1"
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SensorModel":
+        if d.get("format") != "elevmap-sensor-model/1":
+            raise ValueError(f"not an elevmap sensor model (format {d.get('format')!r})")
+        try:
+            hfov = {(int(w), int(h)): float(v) for w, h, v in d["hfov_deg"]}
+            model = cls(
+                name=str(d["name"]),
+                axial_coefficients=tuple(float(x) for x in d["axial_coefficients"]),
+                sigma_L=float(d["sigma_L"]),
+                sigma_R=float(d["sigma_R"]),
+                baseline_m=float(d["baseline_m"]),
+                subpixel=float(d["subpixel"]),
+                theta_max_rad=float(d["theta_max_rad"]),
+                hfov_deg=hfov,
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"sensor model is missing or has a bad key: {exc}") from None
+        if len(model.axial_coefficients) != 4:
+            raise ValueError("sensor model needs exactly 4 axial coefficients")
+        return model
+
+    def save(self, path) -> None:
+        """Write the model as JSON, atomically (temporary file, then rename)."""
+        path = os.fspath(path)
+        directory = os.path.dirname(os.path.abspath(path))
+        fd, tmp = tempfile.mkstemp(prefix=".sensor-model-", suffix=".json", dir=directory)
+        try:
+            with os.fdopen(fd, "w") as fh:
+                json.dump(self.to_dict(), fh, indent=2)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    @classmethod
+    def load(cls, path) -> "SensorModel":
+        """Read a model written by :meth:`save`; a corrupt file raises ``ValueError``."""
+        try:
+            with open(path) as fh:
+                d = json.load(fh)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        return cls.from_dict(d)
+
+
+#: The D435 with the paper's coefficients.
+D435 = SensorModel()
+
+
+def axial_sigma(z, theta=0.0, model: SensorModel = D435):
+    """Axial (depth) noise sigma_z [m] of Ahn et al. (2019), broadcasting over any array shapes.
+
+    Parameters
+    ----------
+    z : array_like
+        Depth along the optical axis [m]; finite and > 0.
+    theta : array_like, optional
+        Angle between the surface normal and the optical axis [rad]. The sign is ignored; values at
+        or beyond ``model.theta_max_rad`` (80 deg by default) are capped to it.
+    model : SensorModel
+        Coefficients; the paper's D435 by default.
+
+    Returns
+    -------
+    ndarray or float
+        sigma_z [m], with the broadcast shape of ``z`` and ``theta``.
+
+    Raises
+    ------
+    ValueError
+        If z is not finite and positive, looks like millimetres, or theta is not finite radians.
+    """
+    z_a = np.asarray(z, dtype=np.float64)
+    t_a = np.asarray(theta, dtype=np.float64)
+    if not np.all(np.isfinite(z_a)) or np.any(z_a <= 0):
+        raise ValueError("z must be finite and > 0 [m]")
+    if z_a.size and float(z_a.max()) > MAX_PLAUSIBLE_DEPTH_M:
+        raise ValueError(f"z holds values up to {float(z_a.max()):.1f}: z must be in metres")
+    if not np.all(np.isfinite(t_a)):
+        raise ValueError("theta must be finite [rad]")
+    if t_a.size and float(np.abs(t_a).max()) > 2 * np.pi:
+        raise ValueError(f"theta holds values up to {float(np.abs(t_a).max()):.1f}: theta must be in radians")
+    out = _axial_sigma_unchecked(z_a, t_a, model)
+    return float(out) if out.ndim == 0 else out
+
+
+def _axial_sigma_unchecked(z, theta, model: SensorModel = D435):
+    c0, c1, c2, ct = (float(c) for c in model.axial_coefficients)
+    t = np.minimum(np.abs(theta), model.theta_max_rad)
+    return c0 + c1 * z + c2 * z * z + ct * z * np.sqrt(z) * t / (0.5 * np.pi - t) ** 2
+
+
+def expected_rms_error(z, subpixel: float = 0.08, baseline: float = 0.050, width_px: int = 848,
+                       hfov_deg: float = _HFOV_16_9_DEG):
+    """Expected stereo depth RMS error, equation (1) of Ahn et al. (2019) [m].
+
+    e = z^2 s / (f b), with f = 0.5 width_px / tan(hfov / 2) [px].
+
+    Parameters
+    ----------
+    z : array_like
+        Distance [m], finite and > 0.
+    subpixel : float
+        Subpixel disparity accuracy s [px] (Intel's typical 0.08).
+    baseline : float
+        Stereo baseline b [m] (D435: 0.050).
+    width_px : int
+        Horizontal resolution p_x of the depth stream [px].
+    hfov_deg : float
+        Horizontal field of view V_h [deg] (D435: 90, Intel's value for this formula).
+    """
+    z_a = np.asarray(z, dtype=np.float64)
+    if not np.all(np.isfinite(z_a)) or np.any(z_a <= 0):
+        raise ValueError("z must be finite and > 0 [m]")
+    if z_a.size and float(z_a.max()) > MAX_PLAUSIBLE_DEPTH_M:
+        raise ValueError(f"z holds values up to {float(z_a.max()):.1f}: z must be in metres")
+    s = check_positive_scalar(subpixel, "subpixel", upper=10.0, unit=" px")
+    b = check_positive_scalar(baseline, "baseline", upper=2.0, unit=" m")
+    w = check_positive_scalar(width_px, "width_px")
+    h = check_positive_scalar(hfov_deg, "hfov_deg", upper=179.0, unit=" deg")
+    f = 0.5 * w / math.tan(math.radians(h) / 2.0)
+    out = z_a * z_a * s / (f * b)
+    return float(out) if out.ndim == 0 else out

@@ -1,0 +1,229 @@
+"""Pixel geometry of a depth image: metres, deprojection, incidence angles and depth edges.
+
+Camera frame (RealSense / OpenCV): x right, y down, z forward; depth is z, not ray length. Pixel
+(v, u) = (row, column); integer coordinates are pixel centres.
+
+These are the plain NumPy implementations; ``noise_model.kernels`` computes the same quantities in a
+single numba pass and is tested against them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .checks import check_depth, check_intrinsics, check_positive_scalar
+from .d435 import D435, SensorModel, _axial_sigma_unchecked
+
+__all__ = [
+    "depth_to_metres",
+    "deproject",
+    "incidence_angles",
+    "depth_edges",
+    "default_block_px",
+    "EDGE_JUMP_REL",
+    "EDGE_JUMP_SIGMAS",
+    "NORMAL_MIN_POINTS",
+]
+
+#: Depth-edge threshold, relative part: a jump of more than 5 % of the nearer depth.
+EDGE_JUMP_REL = 0.05
+#: Depth-edge threshold, noise part: more than 4 standard deviations of the difference of two
+#: independent fronto-parallel pixels, 4 sqrt(2) sigma_z(z, 0) (so noise alone rarely makes an edge).
+EDGE_JUMP_SIGMAS = 4.0
+#: Fewer valid points than this in a normal-estimation window: the surface orientation is unknown
+#: and theta falls back to 0 (fronto-parallel).
+NORMAL_MIN_POINTS = 6
+
+
+def default_block_px(width: int) -> int:
+    """Block size [px] of the normal estimation: W / 106 rounded, at least 2 (8 px at 848 wide).
+
+    The estimation window is 3 x 3 blocks, so it spans the same ~2.5 deg of the field of view at
+    every resolution (24 px at 848x480, 12 px at 424x240, 36 px at 1280x720).
+    """
+    return max(2, int(round(width / 106.0)))
+
+
+def depth_to_metres(depth, depth_scale=None, min_depth_m: float | None = None,
+                    max_depth_m: float | None = None) -> np.ndarray:
+    """Convert a depth image to float64 metres with NaN for every invalid pixel.
+
+    Invalid: 0 depth units, NaN, +-inf, negative, and (when given) outside [min_depth_m, max_depth_m].
+
+    Parameters
+    ----------
+    depth : array_like, shape (H, W)
+        uint16 depth units with ``depth_scale`` [m/unit], or float metres.
+    depth_scale : float, optional
+        Metres per unit for uint16 depth.
+    min_depth_m, max_depth_m : float, optional
+        Valid range [m].
+
+    Returns
+    -------
+    ndarray, shape (H, W), float64 [m]
+    """
+    d, scale = check_depth(depth, depth_scale)
+    z = d.astype(np.float64) * scale
+    bad = ~np.isfinite(z) | (z <= 0.0)
+    if min_depth_m is not None:
+        bad |= z < check_positive_scalar(min_depth_m, "min_depth_m", upper=100.0, unit=" m")
+    if max_depth_m is not None:
+        bad |= z > check_positive_scalar(max_depth_m, "max_depth_m", upper=100.0, unit=" m")
+    z[bad] = np.nan
+    return z
+
+
+def deproject(depth_m, K) -> np.ndarray:
+    """Deproject a depth image into camera-frame points.
+
+    Parameters
+    ----------
+    depth_m : array_like, shape (H, W)
+        Depth z [m] (float); non-finite, zero or negative values are invalid.
+    K : array_like, shape (3, 3)
+        Pinhole intrinsics [px].
+
+    Returns
+    -------
+    points_cam : ndarray, shape (H, W, 3), float64 [m]
+        (x, y, z) in the camera frame (x right, y down, z forward); NaN where the depth is invalid.
+        x = (u - cx) z / fx, y = (v - cy) z / fy.
+    """
+    z = depth_to_metres(depth_m)
+    K = check_intrinsics(K)
+    H, W = z.shape
+    u = (np.arange(W, dtype=np.float64) - K[0, 2]) / K[0, 0]
+    v = (np.arange(H, dtype=np.float64) - K[1, 2]) / K[1, 1]
+    pts = np.empty((H, W, 3))
+    pts[..., 0] = u[None, :] * z
+    pts[..., 1] = v[:, None] * z
+    pts[..., 2] = z
+    return pts
+
+
+def _valid_points(points_cam):
+    p = np.asarray(points_cam)
+    if p.ndim != 3 or p.shape[2] != 3:
+        raise ValueError(f"points_cam must have shape (H, W, 3), got {p.shape}")
+    if not np.issubdtype(p.dtype, np.floating):
+        raise ValueError(f"points_cam must be floating point metres, got dtype {p.dtype}")
+    p = p.astype(np.float64, copy=False)
+    valid = np.isfinite(p).all(axis=2) & (p[..., 2] > 0.0)
+    return p, valid
+
+
+def incidence_angles(points_cam, block_px: int | None = None, min_points: int = NORMAL_MIN_POINTS) -> np.ndarray:
+    """Incidence angle theta [rad] per pixel: angle between the local surface normal and the optical axis.
+
+    The image is cut into ``block_px`` x ``block_px`` blocks; each block's normal is the direction of
+    least variance (principal component analysis, the least-squares plane) of the valid points of
+    the 3 x 3 blocks around it, and every pixel of the block gets that block's theta. theta =
+    atan2(|(n_x, n_y)|, |n_z|), in [0, pi/2]. It is 0 for a fronto-parallel plane wherever it lies in
+    the image (the paper's theta_y, generalised to any tilt).
+
+    Parameters
+    ----------
+    points_cam : array_like, shape (H, W, 3)
+        Camera-frame points [m] from :func:`deproject` (NaN = invalid).
+    block_px : int, optional
+        Block size [px]; :func:`default_block_px` of the width by default.
+    min_points : int
+        A window with fewer valid points gives theta = 0 (orientation unknown, taken fronto-parallel);
+        so does a degenerate window (all points on a line).
+
+    Returns
+    -------
+    theta : ndarray, shape (H, W), float64 [rad]
+        NaN where the pixel itself is invalid.
+    """
+    p, valid = _valid_points(points_cam)
+    H, W = valid.shape
+    b = default_block_px(W) if block_px is None else int(block_px)
+    if b < 1:
+        raise ValueError(f"block_px must be >= 1, got {block_px}")
+    theta_block = _block_theta_numpy(p, valid, b, int(min_points))
+    theta = np.repeat(np.repeat(theta_block, b, axis=0), b, axis=1)[:H, :W].copy()
+    theta[~valid] = np.nan
+    return theta
+
+
+def _block_theta_numpy(p, valid, b, min_points):
+    """Per-block theta [rad] from 3 x 3-block PCA windows (NumPy reference of the numba kernel)."""
+    H, W = valid.shape
+    nby, nbx = -(-H // b), -(-W // b)
+    vv, uu = np.nonzero(valid)
+    cell = (vv // b) * nbx + (uu // b)
+    x, y, z = p[vv, uu, 0], p[vv, uu, 1], p[vv, uu, 2]
+    weights = (None, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
+    M = np.stack([np.bincount(cell, weights=w, minlength=nby * nbx) for w in weights], axis=1)
+    M = M.reshape(nby, nbx, 10)
+    padded = np.zeros((nby + 2, nbx + 2, 10))
+    padded[1:-1, 1:-1] = M
+    S = sum(padded[i:i + nby, j:j + nbx] for i in range(3) for j in range(3))
+    n = S[..., 0]
+    theta = np.zeros((nby, nbx))
+    ok = n >= max(min_points, 3)
+    if not ok.any():
+        return theta
+    Sk = S[ok]
+    nk = Sk[:, 0]
+    mean = Sk[:, 1:4] / nk[:, None]
+    C = np.empty((len(nk), 3, 3))
+    idx = {(0, 0): 4, (0, 1): 5, (0, 2): 6, (1, 1): 7, (1, 2): 8, (2, 2): 9}
+    for (i, j), k in idx.items():
+        C[:, i, j] = C[:, j, i] = Sk[:, k] / nk - mean[:, i] * mean[:, j]
+    w, vecs = np.linalg.eigh(C)
+    normal = vecs[:, :, 0]
+    th = np.arctan2(np.hypot(normal[:, 0], normal[:, 1]), np.abs(normal[:, 2]))
+    degenerate = w[:, 1] <= _DEGENERATE_REL * np.maximum(w[:, 2], 1e-300)
+    th[degenerate] = 0.0
+    theta[ok] = th
+    return theta
+
+
+#: A window whose middle eigenvalue is below this fraction of the largest holds points on a line (or
+#: one point): its normal is undefined.
+_DEGENERATE_REL = 1e-9
+
+
+def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDGE_JUMP_SIGMAS,
+                model: SensorModel = D435):
+    """Pixels on the left and right edges of depth discontinuities (the paper's lateral-noise edges).
+
+    A valid pixel is on a *left edge* when the pixel to its left is invalid, or farther by more than
+    the threshold: it is the left boundary of a nearer surface. Right edges mirror this with the
+    pixel to its right. The threshold on the jump is max(jump_rel z, jump_sigmas sqrt(2)
+    sigma_z(z, 0)) with z the nearer depth: by default 5 % of the depth, or 4 standard deviations of
+    the difference of two fronto-parallel pixels where the paper's noise is larger (beyond ~2.4 m).
+    The image border itself is not an edge.
+
+    Parameters
+    ----------
+    depth_m : array_like, shape (H, W)
+        Depth [m]; non-finite, zero or negative = invalid.
+    jump_rel : float
+        Relative part of the threshold [-].
+    jump_sigmas : float
+        Noise part of the threshold [standard deviations].
+    model : SensorModel
+        For sigma_z.
+
+    Returns
+    -------
+    edge_left, edge_right : ndarray of bool, shape (H, W)
+    """
+    z = depth_to_metres(depth_m)
+    jr = float(jump_rel)
+    js = float(jump_sigmas)
+    if not (np.isfinite(jr) and jr >= 0 and np.isfinite(js) and js >= 0):
+        raise ValueError(f"jump_rel and jump_sigmas must be finite and >= 0, got {jump_rel}, {jump_sigmas}")
+    valid = np.isfinite(z)
+    zf = np.where(valid, z, 1.0)
+    thr = np.maximum(jr * zf, js * np.sqrt(2.0) * _axial_sigma_unchecked(zf, 0.0, model))
+    left = np.zeros(z.shape, dtype=bool)
+    right = np.zeros(z.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        left[:, 1:] = valid[:, 1:] & (~valid[:, :-1] | (z[:, :-1] - z[:, 1:] > thr[:, 1:]))
+        right[:, :-1] = valid[:, :-1] & (~valid[:, 1:] | (z[:, 1:] - z[:, :-1] > thr[:, :-1]))
+    return left, right

@@ -1,0 +1,432 @@
+"""Depth image -> map-frame points with height variance and horizontal covariance, in one numba pass.
+
+:func:`depth_to_map_points` is the hot path of the mapper: per frame it deprojects every valid pixel,
+estimates the incidence angle from block-wise PCA normals, finds depth edges, builds the D435
+covariance of :func:`noise_model.point_covariances`, rotates it into the map frame and adds the
+first-order pose term of :func:`noise_model.to_map_frame`. :func:`depth_to_map_points_reference`
+computes the same thing by composing those public NumPy functions, and the tests hold the two equal.
+
+numba flags: never ``fastmath=True`` (it folds ``isnan`` to False); the flag set below keeps NaN/inf
+semantics and leaves out ``arcp`` (it changes binning at cell borders). Work is split over image rows
+or blocks, each written by one thread only, so the result does not depend on the thread count.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from .checks import check_depth, check_intrinsics, check_pose_cov, check_positive_scalar, check_transform
+from .covariance import point_covariances, to_map_frame
+from .d435 import D435, SensorModel
+from .geometry import (
+    EDGE_JUMP_REL,
+    EDGE_JUMP_SIGMAS,
+    NORMAL_MIN_POINTS,
+    _DEGENERATE_REL,
+    default_block_px,
+    deproject,
+    depth_edges,
+    depth_to_metres,
+    incidence_angles,
+)
+
+__all__ = ["MapPoints", "Workspace", "depth_to_map_points", "depth_to_map_points_reference", "FASTMATH", "resolve_threads"]
+
+#: numba fastmath flags: no nnan/ninf (isnan must work), no arcp (exact division for binning).
+FASTMATH = {"nsz", "contract", "afn", "reassoc"}
+_JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
+
+#: Default valid depth range [m]: the D435's minimum range at 848x480 is ~0.2 m; 10 m is the
+#: datasheet's upper figure (sigma_z there is ~0.4 m).
+MIN_DEPTH_M = 0.1
+MAX_DEPTH_M = 10.0
+
+
+class MapPoints(NamedTuple):
+    """One frame's valid points in the map frame, in row-major pixel order.
+
+    Attributes
+    ----------
+    points_map : ndarray, shape (N, 3) [m]
+    height_var : ndarray, shape (N,) [m^2]
+        Variance of the map-frame z of each point (Sigma_map[2, 2]).
+    horizontal_cov : ndarray, shape (N, 3) [m^2]
+        (Sigma_xx, Sigma_xy, Sigma_yy) of each point in the map frame.
+    pixel : ndarray, shape (N,), int64
+        Flat pixel index v * W + u of each point.
+    """
+
+    points_map: np.ndarray
+    height_var: np.ndarray
+    horizontal_cov: np.ndarray
+    pixel: np.ndarray
+
+
+class Workspace:
+    """Buffers reused across frames of one image size, so a frame costs no fresh memory.
+
+    Allocating and first touching ~30 MB per 848x480 frame costs more than the arithmetic (page
+    faults); a mapper keeps one workspace per camera. Results returned with a workspace are views
+    into it, valid until the next call that uses the same workspace.
+    """
+
+    def __init__(self, height: int, width: int):
+        if int(height) < 1 or int(width) < 1:
+            raise ValueError(f"workspace size must be positive, got {height}x{width}")
+        self.shape = (int(height), int(width))
+        n = self.shape[0] * self.shape[1]
+        self.points_map = np.empty((3, n))       # (3, N) storage: contiguous per coordinate
+        self.height_var = np.empty(n)
+        self.horizontal_cov = np.empty((3, n))
+        self.pixel = np.empty(n, dtype=np.int64)
+
+
+def resolve_threads(nthreads) -> int:
+    """Validate a thread count (None = numba's current setting) against numba's maximum."""
+    if nthreads is None:
+        return numba.get_num_threads()
+    n = int(nthreads)
+    if n < 1 or n > numba.config.NUMBA_NUM_THREADS:
+        raise ValueError(f"nthreads must be in [1, {numba.config.NUMBA_NUM_THREADS}], got {nthreads}")
+    return n
+
+
+# ---------------------------------------------------------------------------------------------
+# numba kernels
+# ---------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _theta_from_moments(S, min_points, degenerate_rel):
+    """theta [rad] of the PCA normal of summed moments S = (n, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)."""
+    n = S[0]
+    if n < max(min_points, 3):
+        return 0.0
+    mx, my, mz = S[1] / n, S[2] / n, S[3] / n
+    a00 = S[4] / n - mx * mx
+    a01 = S[5] / n - mx * my
+    a02 = S[6] / n - mx * mz
+    a11 = S[7] / n - my * my
+    a12 = S[8] / n - my * mz
+    a22 = S[9] / n - mz * mz
+    # eigenvalues of a symmetric 3x3 (trigonometric method)
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
+    if not p2 > 0.0:
+        return 0.0
+    p = math.sqrt(p2 / 6.0)
+    c00, c11, c22, c01, c02, c12 = b00 / p, b11 / p, b22 / p, a01 / p, a02 / p, a12 / p
+    det = c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02) + c02 * (c01 * c12 - c11 * c02)
+    r = min(1.0, max(-1.0, 0.5 * det))
+    phi = math.acos(r) / 3.0
+    l1 = q + 2.0 * p * math.cos(phi)
+    l3 = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    l2 = 3.0 * q - l1 - l3
+    if l2 <= degenerate_rel * max(l1, 1e-300):
+        return 0.0
+    # eigenvector of l3: the largest cross product of two rows of A - l3 I
+    r0x, r0y, r0z = a00 - l3, a01, a02
+    r1x, r1y, r1z = a01, a11 - l3, a12
+    r2x, r2y, r2z = a02, a12, a22 - l3
+    best = -1.0
+    nx = ny = nz = 0.0
+    for k in range(3):
+        if k == 0:
+            ax, ay, az, bx, by, bz = r0x, r0y, r0z, r1x, r1y, r1z
+        elif k == 1:
+            ax, ay, az, bx, by, bz = r0x, r0y, r0z, r2x, r2y, r2z
+        else:
+            ax, ay, az, bx, by, bz = r1x, r1y, r1z, r2x, r2y, r2z
+        cx = ay * bz - az * by
+        cy = az * bx - ax * bz
+        cz = ax * by - ay * bx
+        nn = cx * cx + cy * cy + cz * cz
+        if nn > best:
+            best, nx, ny, nz = nn, cx, cy, cz
+    if not best > 0.0:
+        return 0.0
+    return math.atan2(math.sqrt(nx * nx + ny * ny), abs(nz))
+
+
+@njit(parallel=True, **_JIT)
+def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params, zrange, block, min_points,
+                         degenerate_rel, pts, hvar, hcov, pix):
+    """Fill columns 0..N-1 of pts (3, n), hvar (n,), hcov (3, n), pix (n,) with the frame's valid
+    pixels in row-major order; return N."""
+    H, W = depth.shape
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    c0, c1, c2, ct, theta_max, s_left, s_right = (
+        params[0], params[1], params[2], params[3], params[4], params[5], params[6])
+    jump_rel, jump_sig = edge_params[0], edge_params[1]
+    zmin, zmax = zrange[0], zrange[1]
+    b = block
+    nby = (H + b - 1) // b
+    nbx = (W + b - 1) // b
+    inv_fx = 1.0 / fx
+    inv_fy = 1.0 / fy
+
+    # pass 1: block moments of the valid camera-frame points, valid count per row
+    M = np.zeros((nby, nbx, 10))
+    rowcount = np.zeros(H, dtype=np.int64)
+    for by in prange(nby):
+        for v in range(by * b, min(H, by * b + b)):
+            yv = (v - cy) * inv_fy
+            cnt = 0
+            for bx in range(nbx):
+                n = sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+                for u in range(bx * b, min(W, bx * b + b)):
+                    z = depth[v, u] * scale
+                    if z > 0.0 and z >= zmin and z <= zmax and np.isfinite(z):
+                        x = ((u - cx) * inv_fx) * z
+                        y = yv * z
+                        n += 1.0
+                        sx += x
+                        sy += y
+                        sz += z
+                        sxx += x * x
+                        sxy += x * y
+                        sxz += x * z
+                        syy += y * y
+                        syz += y * z
+                        szz += z * z
+                cnt += int(n)
+                M[by, bx, 0] += n
+                M[by, bx, 1] += sx
+                M[by, bx, 2] += sy
+                M[by, bx, 3] += sz
+                M[by, bx, 4] += sxx
+                M[by, bx, 5] += sxy
+                M[by, bx, 6] += sxz
+                M[by, bx, 7] += syy
+                M[by, bx, 8] += syz
+                M[by, bx, 9] += szz
+            rowcount[v] = cnt
+
+    # pass 2: theta of each block from the 3 x 3 blocks around it, as the gain of the axial theta term
+    # c_theta theta / (pi/2 - theta)^2, spread over the block's pixel columns
+    gain_px = np.empty((nby, W))
+    for by in prange(nby):
+        S = np.empty(10)
+        for bx in range(nbx):
+            S[:] = 0.0
+            for i in range(max(0, by - 1), min(nby, by + 2)):
+                for j in range(max(0, bx - 1), min(nbx, bx + 2)):
+                    for c in range(10):
+                        S[c] += M[i, j, c]
+            t = min(_theta_from_moments(S, min_points, degenerate_rel), theta_max)
+            g = ct * t / ((0.5 * math.pi - t) * (0.5 * math.pi - t))
+            for u in range(bx * b, min(W, bx * b + b)):
+                gain_px[by, u] = g
+
+    # output offsets (exclusive prefix sum of the row counts)
+    offsets = np.empty(H + 1, dtype=np.int64)
+    offsets[0] = 0
+    for v in range(H):
+        offsets[v + 1] = offsets[v] + rowcount[v]
+
+    R00, R01, R02, R10, R11, R12, R20, R21, R22 = (
+        T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
+    t0, t1, t2 = T[0, 3], T[1, 3], T[2, 3]
+    pix_var_x = 1.0 / (12.0 * fx * fx)
+    pix_var_y = 1.0 / (12.0 * fy * fy)
+    thr_sig = jump_sig * math.sqrt(2.0)
+    sL2 = s_left * s_left
+    sR2 = s_right * s_right
+    sLR2 = max(sL2, sR2)
+    # pose term J P J^T as quadratic forms in q = R p_cam, J = [I, -[q]_x], whose rows are
+    # x = e0 + q2 e4 - q1 e5, y = e1 - q2 e3 + q0 e5, z = e2 + q1 e3 - q0 e4
+    P00, P01, P03, P04, P05 = P[0, 0], P[0, 1], P[0, 3], P[0, 4], P[0, 5]
+    P11, P13, P14, P15 = P[1, 1], P[1, 3], P[1, 4], P[1, 5]
+    P22, P23, P24 = P[2, 2], P[2, 3], P[2, 4]
+    P33, P34, P35, P44, P45, P55 = P[3, 3], P[3, 4], P[3, 5], P[4, 4], P[4, 5], P[5, 5]
+
+    # pass 3, per row: (a) compact the valid pixels and find their edges (scalar: neighbours), then
+    # (b) the arithmetic over contiguous (3, N) buffers, branch-free so that it vectorises.
+    # Loop (a) parks u in pix, z in pts[2] and the lateral x variance in hcov[0]; (b) overwrites them.
+    for v in prange(H):
+        if rowcount[v] == 0:
+            continue
+        k0 = offsets[v]
+        k = k0
+        z_prev = 0.0
+        valid_prev = False
+        z = depth[v, 0] * scale
+        valid = z > 0.0 and z >= zmin and z <= zmax and np.isfinite(z)
+        for u in range(W):
+            z_next = 0.0
+            valid_next = False
+            if u < W - 1:
+                z_next = depth[v, u + 1] * scale
+                valid_next = z_next > 0.0 and z_next >= zmin and z_next <= zmax and np.isfinite(z_next)
+            if valid:
+                thr = max(jump_rel * z, thr_sig * (c0 + c1 * z + c2 * z * z))
+                left = u > 0 and ((not valid_prev) or z_prev - z > thr)
+                right = u < W - 1 and ((not valid_next) or z_next - z > thr)
+                if left:
+                    var_x = sLR2 if right else sL2
+                elif right:
+                    var_x = sR2
+                else:
+                    var_x = -1.0   # interior: the pixel footprint, computed in (b)
+                pix[k] = u
+                pts[2, k] = z
+                hcov[0, k] = var_x
+                k += 1
+            z_prev = z
+            valid_prev = valid
+            z = z_next
+            valid = valid_next
+
+        ry = (v - cy) * inv_fy
+        gain_row = gain_px[v // b]
+        b0 = R01 * ry + R02      # a = R r = R[:, 0] rx + (R[:, 1] ry + R[:, 2])
+        b1 = R11 * ry + R12
+        b2 = R21 * ry + R22
+        base = v * W
+        for i in range(k0, k):
+            u = pix[i]
+            z = pts[2, i]
+            var_x = hcov[0, i]
+            zz = z * z
+            var_x = zz * pix_var_x if var_x < 0.0 else var_x
+            var_y = zz * pix_var_y
+            sig = c0 + c1 * z + c2 * zz + gain_row[u] * z * math.sqrt(z)
+            s2 = sig * sig
+            rx = (u - cx) * inv_fx
+            a0 = R00 * rx + b0
+            a1 = R10 * rx + b1
+            a2 = R20 * rx + b2
+            cxx = s2 * a0 * a0 + var_x * R00 * R00 + var_y * R01 * R01
+            cxy = s2 * a0 * a1 + var_x * R00 * R10 + var_y * R01 * R11
+            cyy = s2 * a1 * a1 + var_x * R10 * R10 + var_y * R11 * R11
+            czz = s2 * a2 * a2 + var_x * R20 * R20 + var_y * R21 * R21
+            q0 = z * a0                          # camera centre -> point, map frame
+            q1 = z * a1
+            q2 = z * a2
+            if use_pose:
+                cxx += (P00 + 2.0 * (q2 * P04 - q1 * P05) + q2 * q2 * P44 - 2.0 * q1 * q2 * P45
+                        + q1 * q1 * P55)
+                cyy += (P11 + 2.0 * (q0 * P15 - q2 * P13) + q2 * q2 * P33 - 2.0 * q0 * q2 * P35
+                        + q0 * q0 * P55)
+                czz += (P22 + 2.0 * (q1 * P23 - q0 * P24) + q1 * q1 * P33 - 2.0 * q0 * q1 * P34
+                        + q0 * q0 * P44)
+                cxy += (P01 - q2 * P03 + q0 * P05
+                        + q2 * (P14 - q2 * P34 + q0 * P45)
+                        - q1 * (P15 - q2 * P35 + q0 * P55))
+            pts[0, i] = q0 + t0
+            pts[1, i] = q1 + t1
+            pts[2, i] = q2 + t2
+            hvar[i] = czz
+            hcov[0, i] = cxx
+            hcov[1, i] = cxy
+            hcov[2, i] = cyy
+            pix[i] = base + u
+    return offsets[H]
+
+
+# ---------------------------------------------------------------------------------------------
+# public entries
+# ---------------------------------------------------------------------------------------------
+def _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m, max_depth_m, block_px):
+    d, scale = check_depth(depth, depth_scale)
+    K = check_intrinsics(K)
+    T = check_transform(T_map_cam)
+    P = None if pose_cov is None else check_pose_cov(pose_cov)
+    zmin = check_positive_scalar(min_depth_m, "min_depth_m", upper=100.0, unit=" m")
+    zmax = check_positive_scalar(max_depth_m, "max_depth_m", upper=100.0, unit=" m")
+    if zmin >= zmax:
+        raise ValueError(f"min_depth_m ({zmin}) must be below max_depth_m ({zmax})")
+    b = default_block_px(d.shape[1]) if block_px is None else int(block_px)
+    if b < 1:
+        raise ValueError(f"block_px must be >= 1, got {block_px}")
+    return d, scale, K, T, P, zmin, zmax, b
+
+
+def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None, model: SensorModel = D435,
+                        min_depth_m: float = MIN_DEPTH_M, max_depth_m: float = MAX_DEPTH_M,
+                        block_px: int | None = None, nthreads: int | None = None,
+                        workspace: Workspace | None = None) -> MapPoints:
+    """A depth frame's valid points in the map frame with their height variance and horizontal covariance.
+
+    numba, parallel over rows; equal to :func:`depth_to_map_points_reference`.
+
+    Parameters
+    ----------
+    depth : array_like, shape (H, W)
+        uint16 depth units (with ``depth_scale``) or float metres; 0, NaN, inf, negative = no point.
+    K : array_like, shape (3, 3)
+        Depth-stream intrinsics [px].
+    T_map_cam : array_like, shape (4, 4)
+        Maps camera-frame points into the map frame.
+    pose_cov : array_like, shape (6, 6), optional
+        Pose-error covariance, translation [m^2] then rotation [rad^2] in the map frame about the
+        camera centre (see :func:`noise_model.to_map_frame`).
+    depth_scale : float, optional
+        Metres per unit for uint16 depth.
+    model : SensorModel
+        Noise model (the paper's D435 by default).
+    min_depth_m, max_depth_m : float
+        Valid depth range [m].
+    block_px : int, optional
+        Normal-estimation block size [px] (see :func:`noise_model.incidence_angles`).
+    nthreads : int, optional
+        Threads to use (numba's current setting by default).
+    workspace : Workspace, optional
+        Reused buffers of this image size; the result is then a view into it, valid until the
+        workspace's next use. Without one, fresh arrays are returned.
+
+    Returns
+    -------
+    MapPoints
+    """
+    d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
+                                                max_depth_m, block_px)
+    n = resolve_threads(nthreads)
+    ws = Workspace(*d.shape) if workspace is None else workspace
+    if not isinstance(ws, Workspace) or ws.shape != d.shape:
+        raise ValueError(f"workspace must be a Workspace of the depth image's size {d.shape}")
+    intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    edge = np.array([EDGE_JUMP_REL, EDGE_JUMP_SIGMAS])
+    previous = numba.get_num_threads()
+    numba.set_num_threads(n)
+    try:
+        N = _depth_to_map_kernel(d, scale, intr, T, np.zeros((6, 6)) if P is None else P, P is not None,
+                                 model.params_array(), edge, np.array([zmin, zmax]), b, NORMAL_MIN_POINTS,
+                                 _DEGENERATE_REL, ws.points_map, ws.height_var, ws.horizontal_cov,
+                                 ws.pixel)
+    finally:
+        numba.set_num_threads(previous)
+    out = MapPoints(ws.points_map[:, :N].T, ws.height_var[:N], ws.horizontal_cov[:, :N].T, ws.pixel[:N])
+    if workspace is None:   # fresh arrays of exactly N rows, not views of an oversized buffer
+        out = MapPoints(*(np.ascontiguousarray(a) for a in out))
+    return out
+
+
+def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
+                                  model: SensorModel = D435, min_depth_m: float = MIN_DEPTH_M,
+                                  max_depth_m: float = MAX_DEPTH_M, block_px: int | None = None) -> MapPoints:
+    """NumPy reference of :func:`depth_to_map_points`, composed of the public functions.
+
+    depth_to_metres -> deproject -> incidence_angles -> depth_edges -> point_covariances ->
+    to_map_frame.
+    """
+    d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
+                                                max_depth_m, block_px)
+    z = depth_to_metres(d, None if d.dtype != np.uint16 else scale, zmin, zmax)
+    pts = deproject(z, K)
+    theta = incidence_angles(pts, block_px=b)
+    left, right = depth_edges(z, model=model)
+    valid = np.isfinite(z)
+    pix = np.flatnonzero(valid.ravel())
+    p = pts.reshape(-1, 3)[pix]
+    cov = point_covariances(p, theta.ravel()[pix], left.ravel()[pix], right.ravel()[pix], fx=K[0, 0],
+                            fy=K[1, 1], model=model)
+    cov_map = to_map_frame(cov, p, T, P)
+    points_map = p @ T[:3, :3].T + T[:3, 3]
+    hcov = np.stack([cov_map[:, 0, 0], cov_map[:, 0, 1], cov_map[:, 1, 1]], axis=1)
+    return MapPoints(points_map, cov_map[:, 2, 2].copy(), hcov, pix.astype(np.int64))
