@@ -1,0 +1,99 @@
+"""Deprojection, incidence angles and depth edges on tiny hand-checkable images and exact planes."""
+
+import math
+
+import numpy as np
+import pytest
+
+from noise_model import D435, deproject, depth_edges, depth_to_metres, incidence_angles
+from noise_model.sim import render_planar_target
+
+K3 = np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]])   # a 3x3 image, centre pixel (1, 1)
+
+
+def test_deproject_by_hand():
+    depth = np.array([[2.0, 0.0, 1.0], [np.nan, 4.0, -1.0], [np.inf, 1.0, 2.0]])
+    p = deproject(depth, K3)
+    assert p.shape == (3, 3, 3)
+    np.testing.assert_allclose(p[0, 0], [-1.0, -1.0, 2.0])    # x = (0 - 1) / 2 * 2, y likewise
+    np.testing.assert_allclose(p[1, 1], [0.0, 0.0, 4.0])      # the principal point
+    np.testing.assert_allclose(p[2, 2], [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(p[0, 2], [0.5, -0.5, 1.0])
+    for v, u in [(0, 1), (1, 0), (1, 2), (2, 0)]:              # 0, NaN, negative, inf: no point
+        assert np.all(np.isnan(p[v, u]))
+
+
+def test_depth_to_metres_units_and_range():
+    d = np.array([[0, 1000, 2500, 65535]], dtype=np.uint16)
+    z = depth_to_metres(d, 0.001)
+    np.testing.assert_allclose(z, [[np.nan, 1.0, 2.5, 65.535]])
+    z = depth_to_metres(d, 0.001, min_depth_m=1.5, max_depth_m=10.0)
+    np.testing.assert_allclose(z, [[np.nan, np.nan, 2.5, np.nan]])
+    with pytest.raises(ValueError, match="depth_scale"):
+        depth_to_metres(d)
+    with pytest.raises(ValueError, match="millimetres"):
+        depth_to_metres(np.full((2, 2), 1500.0))
+    with pytest.raises(ValueError, match="uint16"):
+        depth_to_metres(np.ones((2, 2), dtype=np.int32))
+    with pytest.raises(ValueError, match="2-D"):
+        depth_to_metres(np.ones((2, 2, 2)))
+
+
+@pytest.mark.parametrize("yaw, pitch", [(0, 0), (30, 0), (-45, 0), (0, 40), (25, -20), (60, 30)])
+def test_incidence_angle_of_an_exact_plane(yaw, pitch):
+    K = D435.intrinsics(424, 240)
+    z, theta_true = render_planar_target(K, 424, 240, 1.5, yaw, pitch)
+    z[z > 10.0] = np.nan                                        # beyond the D435's range
+    theta = incidence_angles(deproject(z, K))
+    ok = np.isfinite(z)
+    np.testing.assert_allclose(theta[ok], theta_true[ok], atol=1e-6)
+    assert np.all(np.isnan(theta[~ok]))
+
+
+def test_fronto_parallel_plane_off_centre_has_zero_angle():
+    # theta is measured against the optical axis, not the viewing ray: 0 in the image corners too
+    K = D435.intrinsics(848, 480)
+    theta = incidence_angles(deproject(np.full((480, 848), 2.0), K))
+    assert np.nanmax(theta) < 1e-6
+
+
+def test_incidence_angle_on_a_noisy_plane(rng):
+    K = D435.intrinsics(848, 480)
+    z, _ = render_planar_target(K, 848, 480, 1.0, 30.0, 0.0)
+    z = z + rng.normal(size=z.shape) * 0.0057          # sigma_z at 1 m
+    theta = incidence_angles(deproject(z, K))
+    assert math.degrees(np.nanmedian(theta)) == pytest.approx(30.0, abs=1.5)
+
+
+def test_incidence_angle_falls_back_to_zero_with_too_few_points():
+    z = np.full((40, 40), np.nan)
+    z[20, 20] = 1.0
+    theta = incidence_angles(deproject(z, K3), block_px=4)
+    assert theta[20, 20] == 0.0 and np.isnan(theta[0, 0])
+
+
+def test_depth_edges_by_hand():
+    # a near box (1 m) in front of a far wall (2 m), an invalid pixel, and a lone near pixel
+    row = np.array([[2.0, 2.0, 1.0, 1.0, 1.0, 2.0, 2.0, 0.0, 2.0, 1.0, 2.0]])
+    left, right = depth_edges(row)
+    assert np.flatnonzero(left[0]).tolist() == [2, 8, 9]      # the far pixel right of a hole is a left edge too
+    assert np.flatnonzero(right[0]).tolist() == [4, 6, 9]
+    assert not left[0, 0] and not right[0, -1]                  # the image border is not an edge
+
+
+def test_depth_edges_threshold_is_relative_and_noise_aware():
+    # at 1 m the threshold is 5 % = 5 cm: a 4 cm step is no edge, a 6 cm step is
+    left, right = depth_edges(np.array([[1.04, 1.0, 1.04]]))
+    assert not left[0, 1] and not right[0, 1]
+    left, right = depth_edges(np.array([[1.06, 1.0, 1.06]]))
+    assert left[0, 1] and right[0, 1]
+    # at 3 m sigma_z(3, 0) = 0.0388 m, so 4 sqrt(2) sigma = 0.2196 m beats 5 % = 0.15 m
+    left, _ = depth_edges(np.array([[3.2, 3.0]]))
+    assert not left[0, 1]
+    left, _ = depth_edges(np.array([[3.23, 3.0]]))
+    assert left[0, 1]
+
+
+def test_depth_edges_rejects_bad_thresholds():
+    with pytest.raises(ValueError, match="jump_rel"):
+        depth_edges(np.ones((3, 3)), jump_rel=-1)
