@@ -25,6 +25,7 @@ from .checks import (
 )
 from .covariance import point_covariances, pose_jacobian, skew, to_map_frame
 from .d435 import D435, THETA_MAX_DEFAULT, SensorModel, axial_sigma, expected_rms_error
+from . import kernels, sim
 from .geometry import deproject, depth_edges, depth_to_metres, default_block_px, incidence_angles
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 

@@ -20,7 +20,7 @@ import numpy as np
 from .checks import check_intrinsics, check_positive_scalar
 from .d435 import D435, SensorModel, _axial_sigma_unchecked
 
-__all__ = ["target_rotation", "render_planar_target", "simulate_target_frames"]
+__all__ = ["target_rotation", "camera_extrinsics", "render_planar_target", "simulate_target_frames"]
 
 
 def target_rotation(yaw_deg: float = 0.0, pitch_deg: float = 0.0) -> np.ndarray:
@@ -29,6 +29,36 @@ def target_rotation(yaw_deg: float = 0.0, pitch_deg: float = 0.0) -> np.ndarray:
     Ry = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]])
     Rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(b), -math.sin(b)], [0.0, math.sin(b), math.cos(b)]])
     return Ry @ Rx
+
+
+def camera_extrinsics(position_m=(0.0, 0.0, 0.45), pitch_down_deg: float = 30.0, yaw_deg: float = 0.0) -> np.ndarray:
+    """T_map_cam of a camera looking along the map's heading ``yaw_deg``, pitched down.
+
+    Map frame: x forward, y left, z up. Camera frame: x right, y down, z forward. With yaw 0 and
+    pitch 0 the optical axis is map +x, image right is map -y and image down is map -z.
+
+    Parameters
+    ----------
+    position_m : (3,) array_like
+        Camera centre in the map frame [m].
+    pitch_down_deg : float
+        Downward pitch of the optical axis [deg].
+    yaw_deg : float
+        Heading about map z [deg].
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+    """
+    p, y = math.radians(float(pitch_down_deg)), math.radians(float(yaw_deg))
+    cp, sp, cy, sy = math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    z_cam = np.array([cp * cy, cp * sy, -sp])       # optical axis
+    x_cam = np.array([sy, -cy, 0.0])                # image right
+    y_cam = np.cross(z_cam, x_cam)                  # image down
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x_cam, y_cam, z_cam])
+    T[:3, 3] = np.asarray(position_m, dtype=np.float64)
+    return T
 
 
 def _rays(K, width, height):

@@ -1,0 +1,49 @@
+"""The command line: subcommands, JSON reports, errors; and the package layering rules."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from elevmap.cli import main
+
+
+def test_bench_writes_one_record_per_kernel_size_and_implementation(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--frames", "3", "--reference-frames", "1", "--json", str(out), "--no-progress"]) == 0
+    report = json.loads(out.read_text())
+    keys = {(r["name"], r["width"], r["height"], r["impl"]) for r in report["results"]}
+    assert keys == {("noise", 848, 480, "numba"), ("noise", 848, 480, "numpy"),
+                    ("noise", 424, 240, "numba"), ("noise", 424, 240, "numpy")}
+    for r in report["results"]:
+        assert r["median_ms"] > 0 and r["points_per_s"] > 0
+        assert r["points"] > 0.9 * r["width"] * r["height"] * 0.5
+    assert "speed-up" in capsys.readouterr().out
+    assert [p.name for p in tmp_path.iterdir()] == ["bench.json"]
+
+
+def test_bad_arguments_are_reported_not_raised(capsys):
+    assert main(["bench", "--frames", "0"]) == 2
+    assert "must be >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["no-such-command"])
+
+
+def test_console_script_has_help():
+    res = subprocess.run([sys.executable, "-m", "elevmap.cli", "--help"], capture_output=True, text=True)
+    assert res.returncode == 0
+    for cmd in ("demo", "bench"):
+        assert cmd in res.stdout
+
+
+def test_noise_model_imports_no_io_or_visualisation():
+    code = ("import sys, noise_model; bad = [m for m in ('elevmap', 'rerun', 'pyrealsense2', 'cv2') "
+            "if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_elevmap_core_imports_no_realsense():
+    code = ("import sys, elevmap, elevmap.cli, elevmap.bench; sys.exit(1 if 'pyrealsense2' in sys.modules else 0)")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
