@@ -111,7 +111,7 @@ def _capture(i, distance_m, yaw_deg, K, width, height, n_frames, n_points, rng):
         z_m = nm.depth_to_metres(frame, DEPTH_SCALE, min_depth_m=lo, max_depth_m=hi)   # (H, W) [m]
         points_cam = nm.deproject(z_m, K)                                               # (H, W, 3) [m]
         theta = nm.incidence_angles(points_cam)                                          # (H, W) [rad]
-        edge_left, edge_right = nm.depth_edges(z_m)
+        edge_left, edge_right = nm.depth_edges(z_m, theta=theta)
         valid = np.isfinite(z_m)
         cov_cam = nm.point_covariances(points_cam[valid], theta[valid], edge_left[valid], edge_right[valid],
                                        fx=fx, fy=fy)                                     # (N, 3, 3) [m^2]

@@ -73,10 +73,11 @@ def check_depth(depth, depth_scale=None, name: str = "depth") -> tuple[np.ndarra
             raise ValueError(
                 f"{name} is floating point and is taken as metres; depth_scale must be None, got {depth_scale!r}"
             )
-        finite = a[np.isfinite(a)]
-        if finite.size and float(finite.max()) > MAX_PLAUSIBLE_DEPTH_M:
+        # largest finite value without copying the finite pixels out (a frame-sized temporary)
+        top = float(np.max(a, where=np.isfinite(a), initial=-np.inf))
+        if top > MAX_PLAUSIBLE_DEPTH_M:
             raise ValueError(
-                f"{name} holds values up to {float(finite.max()):.1f}: float depth must be in metres "
+                f"{name} holds values up to {top:.1f}: float depth must be in metres "
                 f"(millimetres? pass uint16 with depth_scale=0.001)"
             )
         return np.ascontiguousarray(a), 1.0

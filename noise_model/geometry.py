@@ -38,8 +38,8 @@ NORMAL_MIN_POINTS = 6
 def default_block_px(width: int) -> int:
     """Block size [px] of the normal estimation: W / 106 rounded, at least 2 (8 px at 848 wide).
 
-    The estimation window is 3 x 3 blocks, so it spans the same ~2.5 deg of the field of view at
-    every resolution (24 px at 848x480, 12 px at 424x240, 36 px at 1280x720).
+    The estimation window is 5 x 5 blocks, so it spans the same ~4.2 deg of the field of view at
+    every resolution (40 px at 848x480, 20 px at 424x240, 60 px at 1280x720).
     """
     return max(2, int(round(width / 106.0)))
 
@@ -116,11 +116,18 @@ def _valid_points(points_cam):
 def incidence_angles(points_cam, block_px: int | None = None, min_points: int = NORMAL_MIN_POINTS) -> np.ndarray:
     """Incidence angle theta [rad] per pixel: angle between the local surface normal and the optical axis.
 
-    The image is cut into ``block_px`` x ``block_px`` blocks; each block's normal is the direction of
-    least variance (principal component analysis, the least-squares plane) of the valid points of
-    the 3 x 3 blocks around it, and every pixel of the block gets that block's theta. theta =
-    atan2(|(n_x, n_y)|, |n_z|), in [0, pi/2]. It is 0 for a fronto-parallel plane wherever it lies in
-    the image (the paper's theta_y, generalised to any tilt).
+    A plane n . p = d seen through a pinhole is exactly linear in inverse depth:
+    1 / z = (n_x u' + n_y v' + n_z) / d, with u' = x / z and v' = y / z the normalised pixel
+    coordinates. So each window fits w = 1 / z = alpha u' + beta v' + gamma by ordinary least squares
+    and takes n proportional to (alpha, beta, gamma). Stereo noise moves a point along its viewing
+    ray, which changes z but leaves (u', v') exact: the regressors are noise-free and the fit is free
+    of the bias that a 3-D principal-component fit suffers (there the noise along the rays tilts the
+    normal away from them, and theta grows with the noise).
+
+    The image is cut into ``block_px`` x ``block_px`` blocks; each block's fit uses the valid pixels
+    of the 5 x 5 blocks around it, and every pixel of the block gets that block's theta =
+    atan2(|(alpha, beta)|, |gamma|), in [0, pi/2]. It is 0 for a fronto-parallel plane wherever it lies
+    in the image (the paper's theta_y, generalised to any tilt).
 
     Parameters
     ----------
@@ -130,7 +137,7 @@ def incidence_angles(points_cam, block_px: int | None = None, min_points: int = 
         Block size [px]; :func:`default_block_px` of the width by default.
     min_points : int
         A window with fewer valid points gives theta = 0 (orientation unknown, taken fronto-parallel);
-        so does a degenerate window (all points on a line).
+        so does a degenerate window (all pixels on one image line).
 
     Returns
     -------
@@ -148,54 +155,64 @@ def incidence_angles(points_cam, block_px: int | None = None, min_points: int = 
     return theta
 
 
+#: Half-width of the normal-estimation window, in blocks (the window is 5 x 5 blocks).
+WINDOW_RADIUS_BLOCKS = 2
+
+
 def _block_theta_numpy(p, valid, b, min_points):
-    """Per-block theta [rad] from 3 x 3-block PCA windows (NumPy reference of the numba kernel)."""
+    """Per-block theta [rad] from inverse-depth plane fits over 5 x 5-block windows (NumPy reference)."""
     H, W = valid.shape
     nby, nbx = -(-H // b), -(-W // b)
     vv, uu = np.nonzero(valid)
     cell = (vv // b) * nbx + (uu // b)
-    x, y, z = p[vv, uu, 0], p[vv, uu, 1], p[vv, uu, 2]
-    weights = (None, x, y, z, x * x, x * y, x * z, y * y, y * z, z * z)
-    M = np.stack([np.bincount(cell, weights=w, minlength=nby * nbx) for w in weights], axis=1)
-    M = M.reshape(nby, nbx, 10)
-    padded = np.zeros((nby + 2, nbx + 2, 10))
-    padded[1:-1, 1:-1] = M
-    S = sum(padded[i:i + nby, j:j + nbx] for i in range(3) for j in range(3))
+    z = p[vv, uu, 2]
+    up, vp, w = p[vv, uu, 0] / z, p[vv, uu, 1] / z, 1.0 / z
+    weights = (None, up, vp, w, up * up, up * vp, vp * vp, up * w, vp * w)
+    M = np.stack([np.bincount(cell, weights=x, minlength=nby * nbx) for x in weights], axis=1)
+    M = M.reshape(nby, nbx, 9)
+    r = WINDOW_RADIUS_BLOCKS
+    padded = np.zeros((nby + 2 * r, nbx + 2 * r, 9))
+    padded[r:-r, r:-r] = M
+    S = sum(padded[i:i + nby, j:j + nbx] for i in range(2 * r + 1) for j in range(2 * r + 1))
+    return _theta_from_inverse_depth_moments(S, min_points)
+
+
+def _theta_from_inverse_depth_moments(S, min_points):
+    """theta [rad] from summed moments (n, su, sv, sw, suu, suv, svv, suw, svw), any leading shape."""
     n = S[..., 0]
-    theta = np.zeros((nby, nbx))
     ok = n >= max(min_points, 3)
-    if not ok.any():
-        return theta
-    Sk = S[ok]
-    nk = Sk[:, 0]
-    mean = Sk[:, 1:4] / nk[:, None]
-    C = np.empty((len(nk), 3, 3))
-    idx = {(0, 0): 4, (0, 1): 5, (0, 2): 6, (1, 1): 7, (1, 2): 8, (2, 2): 9}
-    for (i, j), k in idx.items():
-        C[:, i, j] = C[:, j, i] = Sk[:, k] / nk - mean[:, i] * mean[:, j]
-    w, vecs = np.linalg.eigh(C)
-    normal = vecs[:, :, 0]
-    th = np.arctan2(np.hypot(normal[:, 0], normal[:, 1]), np.abs(normal[:, 2]))
-    degenerate = w[:, 1] <= _DEGENERATE_REL * np.maximum(w[:, 2], 1e-300)
-    th[degenerate] = 0.0
-    theta[ok] = th
-    return theta
+    nn = np.where(ok, n, 1.0)
+    mu, mv, mw = S[..., 1] / nn, S[..., 2] / nn, S[..., 3] / nn
+    cuu = S[..., 4] / nn - mu * mu
+    cuv = S[..., 5] / nn - mu * mv
+    cvv = S[..., 6] / nn - mv * mv
+    cuw = S[..., 7] / nn - mu * mw
+    cvw = S[..., 8] / nn - mv * mw
+    det = cuu * cvv - cuv * cuv
+    ok &= det > _DEGENERATE_REL * (cuu + cvv) ** 2
+    det = np.where(ok, det, 1.0)
+    alpha = (cvv * cuw - cuv * cvw) / det
+    beta = (cuu * cvw - cuv * cuw) / det
+    gamma = mw - alpha * mu - beta * mv
+    theta = np.arctan2(np.hypot(alpha, beta), np.abs(gamma))
+    return np.where(ok, theta, 0.0)
 
 
-#: A window whose middle eigenvalue is below this fraction of the largest holds points on a line (or
-#: one point): its normal is undefined.
+#: A window whose pixel-coordinate covariance has a determinant below this fraction of its squared
+#: trace holds pixels on one line (or one pixel): the plane, and so its normal, is undefined.
 _DEGENERATE_REL = 1e-9
 
 
 def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDGE_JUMP_SIGMAS,
-                model: SensorModel = D435):
+                model: SensorModel = D435, theta=None):
     """Pixels on the left and right edges of depth discontinuities (the paper's lateral-noise edges).
 
     A valid pixel is on a *left edge* when the pixel to its left is invalid, or farther by more than
     the threshold: it is the left boundary of a nearer surface. Right edges mirror this with the
     pixel to its right. The threshold on the jump is max(jump_rel z, jump_sigmas sqrt(2)
-    sigma_z(z, 0)) with z the nearer depth: by default 5 % of the depth, or 4 standard deviations of
-    the difference of two fronto-parallel pixels where the paper's noise is larger (beyond ~2.4 m).
+    sigma_z(z, theta)) with z and theta those of the nearer pixel: by default 5 % of the depth, or 4
+    standard deviations of the difference of two pixels where the paper's noise is larger (beyond
+    ~2.4 m head-on, and sooner on oblique surfaces, whose noise would otherwise be taken for edges).
     The image border itself is not an edge.
 
     Parameters
@@ -208,6 +225,8 @@ def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = E
         Noise part of the threshold [standard deviations].
     model : SensorModel
         For sigma_z.
+    theta : array_like, shape (H, W), optional
+        Incidence angles [rad] (:func:`incidence_angles`); 0 (fronto-parallel) where not given.
 
     Returns
     -------
@@ -220,7 +239,11 @@ def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = E
         raise ValueError(f"jump_rel and jump_sigmas must be finite and >= 0, got {jump_rel}, {jump_sigmas}")
     valid = np.isfinite(z)
     zf = np.where(valid, z, 1.0)
-    thr = np.maximum(jr * zf, js * np.sqrt(2.0) * _axial_sigma_unchecked(zf, 0.0, model))
+    th = np.zeros(z.shape) if theta is None else np.asarray(theta, dtype=np.float64)
+    if th.shape != z.shape:
+        raise ValueError(f"theta must have the depth image's shape {z.shape}, got {th.shape}")
+    th = np.where(valid & np.isfinite(th), th, 0.0)
+    thr = np.maximum(jr * zf, js * np.sqrt(2.0) * _axial_sigma_unchecked(zf, th, model))
     left = np.zeros(z.shape, dtype=bool)
     right = np.zeros(z.shape, dtype=bool)
     with np.errstate(invalid="ignore"):

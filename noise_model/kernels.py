@@ -1,9 +1,9 @@
 """Depth image -> map-frame points with height variance and horizontal covariance, in one numba pass.
 
 :func:`depth_to_map_points` is the hot path of the mapper: per frame it deprojects every valid pixel,
-estimates the incidence angle from block-wise PCA normals, finds depth edges, builds the D435
-covariance of :func:`noise_model.point_covariances`, rotates it into the map frame and adds the
-first-order pose term of :func:`noise_model.to_map_frame`. :func:`depth_to_map_points_reference`
+estimates the incidence angle from block-wise inverse-depth plane fits, finds depth edges, builds
+the D435 covariance of :func:`noise_model.point_covariances`, rotates it into the map frame and adds
+the first-order pose term of :func:`noise_model.to_map_frame`. :func:`depth_to_map_points_reference`
 computes the same thing by composing those public NumPy functions, and the tests hold the two equal.
 
 numba flags: never ``fastmath=True`` (it folds ``isnan`` to False); the flag set below keeps NaN/inf
@@ -27,6 +27,7 @@ from .geometry import (
     EDGE_JUMP_REL,
     EDGE_JUMP_SIGMAS,
     NORMAL_MIN_POINTS,
+    WINDOW_RADIUS_BLOCKS,
     _DEGENERATE_REL,
     default_block_px,
     deproject,
@@ -100,64 +101,39 @@ def resolve_threads(nthreads) -> int:
 # numba kernels
 # ---------------------------------------------------------------------------------------------
 @njit(**_JIT)
-def _theta_from_moments(S, min_points, degenerate_rel):
-    """theta [rad] of the PCA normal of summed moments S = (n, sx, sy, sz, sxx, sxy, sxz, syy, syz, szz)."""
+def _theta_from_inverse_depth_moments(S, min_points, degenerate_rel):
+    """theta [rad] of the inverse-depth plane fit of summed moments
+    S = (n, su, sv, sw, suu, suv, svv, suw, svw); see :func:`noise_model.incidence_angles`."""
     n = S[0]
     if n < max(min_points, 3):
         return 0.0
-    mx, my, mz = S[1] / n, S[2] / n, S[3] / n
-    a00 = S[4] / n - mx * mx
-    a01 = S[5] / n - mx * my
-    a02 = S[6] / n - mx * mz
-    a11 = S[7] / n - my * my
-    a12 = S[8] / n - my * mz
-    a22 = S[9] / n - mz * mz
-    # eigenvalues of a symmetric 3x3 (trigonometric method)
-    p1 = a01 * a01 + a02 * a02 + a12 * a12
-    q = (a00 + a11 + a22) / 3.0
-    b00, b11, b22 = a00 - q, a11 - q, a22 - q
-    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
-    if not p2 > 0.0:
+    mu, mv, mw = S[1] / n, S[2] / n, S[3] / n
+    cuu = S[4] / n - mu * mu
+    cuv = S[5] / n - mu * mv
+    cvv = S[6] / n - mv * mv
+    cuw = S[7] / n - mu * mw
+    cvw = S[8] / n - mv * mw
+    det = cuu * cvv - cuv * cuv
+    if not det > degenerate_rel * (cuu + cvv) * (cuu + cvv):    # pixels on one image line
         return 0.0
-    p = math.sqrt(p2 / 6.0)
-    c00, c11, c22, c01, c02, c12 = b00 / p, b11 / p, b22 / p, a01 / p, a02 / p, a12 / p
-    det = c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02) + c02 * (c01 * c12 - c11 * c02)
-    r = min(1.0, max(-1.0, 0.5 * det))
-    phi = math.acos(r) / 3.0
-    l1 = q + 2.0 * p * math.cos(phi)
-    l3 = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    l2 = 3.0 * q - l1 - l3
-    if l2 <= degenerate_rel * max(l1, 1e-300):
-        return 0.0
-    # eigenvector of l3: the largest cross product of two rows of A - l3 I
-    r0x, r0y, r0z = a00 - l3, a01, a02
-    r1x, r1y, r1z = a01, a11 - l3, a12
-    r2x, r2y, r2z = a02, a12, a22 - l3
-    best = -1.0
-    nx = ny = nz = 0.0
-    for k in range(3):
-        if k == 0:
-            ax, ay, az, bx, by, bz = r0x, r0y, r0z, r1x, r1y, r1z
-        elif k == 1:
-            ax, ay, az, bx, by, bz = r0x, r0y, r0z, r2x, r2y, r2z
-        else:
-            ax, ay, az, bx, by, bz = r1x, r1y, r1z, r2x, r2y, r2z
-        cx = ay * bz - az * by
-        cy = az * bx - ax * bz
-        cz = ax * by - ay * bx
-        nn = cx * cx + cy * cy + cz * cz
-        if nn > best:
-            best, nx, ny, nz = nn, cx, cy, cz
-    if not best > 0.0:
-        return 0.0
-    return math.atan2(math.sqrt(nx * nx + ny * ny), abs(nz))
+    alpha = (cvv * cuw - cuv * cvw) / det
+    beta = (cuu * cvw - cuv * cuw) / det
+    gamma = mw - alpha * mu - beta * mv
+    return math.atan2(math.hypot(alpha, beta), abs(gamma))
 
 
 @njit(parallel=True, **_JIT)
-def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params, zrange, block, min_points,
-                         degenerate_rel, pts, hvar, hcov, pix):
+def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params, zrange, block, radius,
+                         min_points, degenerate_rel, pts, hvar, hcov, pix):
     """Fill columns 0..N-1 of pts (3, n), hvar (n,), hcov (3, n), pix (n,) with the frame's valid
-    pixels in row-major order; return N."""
+    pixels in row-major order; return N.
+
+    Speed notes (the inner loops must vectorise): loops index from 0 or with unsigned indices (a
+    signed index that may be negative gets numba's wraparound select, which makes the access
+    non-contiguous for LLVM); the per-pixel loops are branch-free (selects); arrays are indexed
+    directly rather than through views created inside a prange body, so that numba can mark the
+    body's arrays noalias and LLVM needs no runtime alias checks.
+    """
     H, W = depth.shape
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     c0, c1, c2, ct, theta_max, s_left, s_right = (
@@ -169,57 +145,87 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     nbx = (W + b - 1) // b
     inv_fx = 1.0 / fx
     inv_fy = 1.0 / fy
+    # normalised pixel coordinates u' = x / z = (u - cx) / fx per column, v' = (v - cy) / fy per row
+    up = np.empty(W)
+    for u in range(W):
+        up[u] = (u - cx) * inv_fx
+    vp = np.empty(H)
+    for v in range(H):
+        vp[v] = (v - cy) * inv_fy
 
-    # pass 1: block moments of the valid camera-frame points, valid count per row
-    M = np.zeros((nby, nbx, 10))
-    rowcount = np.zeros(H, dtype=np.int64)
+    # pass 1: per block, the moments (n, su, sv, sw, suu, suv, svv, suw, svw) of u', v' and w = 1 / z
+    # over its valid pixels, and the valid count per row. u' is constant down a column and v' along a
+    # row, so per block row only five column sums are needed: n, sum v', sum v'^2, sum w, sum v' w;
+    # the u' factors are applied once per column when the columns are summed into blocks. The pixel
+    # loop is branch-free (selects) so that it vectorises. zmin > 0 and zmax are finite (_prepare
+    # checks them), so zmin <= z <= zmax also rejects 0, NaN, +-inf and negative depth.
+    M = np.empty((nby, nbx, 9))
+    rowcount = np.empty(H, dtype=np.int64)
     for by in prange(nby):
+        cn = np.zeros(W)
+        cv = np.zeros(W)
+        cvv = np.zeros(W)
+        cw = np.zeros(W)
+        cvw = np.zeros(W)
         for v in range(by * b, min(H, by * b + b)):
-            yv = (v - cy) * inv_fy
+            vv = vp[v]
+            vv2 = vv * vv
             cnt = 0
-            for bx in range(nbx):
-                n = sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
-                for u in range(bx * b, min(W, bx * b + b)):
-                    z = depth[v, u] * scale
-                    if z > 0.0 and z >= zmin and z <= zmax and np.isfinite(z):
-                        x = ((u - cx) * inv_fx) * z
-                        y = yv * z
-                        n += 1.0
-                        sx += x
-                        sy += y
-                        sz += z
-                        sxx += x * x
-                        sxy += x * y
-                        sxz += x * z
-                        syy += y * y
-                        syz += y * z
-                        szz += z * z
-                cnt += int(n)
-                M[by, bx, 0] += n
-                M[by, bx, 1] += sx
-                M[by, bx, 2] += sy
-                M[by, bx, 3] += sz
-                M[by, bx, 4] += sxx
-                M[by, bx, 5] += sxy
-                M[by, bx, 6] += sxz
-                M[by, bx, 7] += syy
-                M[by, bx, 8] += syz
-                M[by, bx, 9] += szz
+            for u in range(W):
+                z = depth[v, u] * scale
+                ok = (z >= zmin) & (z <= zmax)
+                f = 1.0 if ok else 0.0
+                w = 1.0 / z if ok else 0.0
+                cn[u] += f
+                cv[u] += f * vv
+                cvv[u] += f * vv2
+                cw[u] += w
+                cvw[u] += vv * w
+                cnt += 1 if ok else 0
             rowcount[v] = cnt
+        for bx in range(nbx):
+            n = su = sv = sw = suu = suv = svv = suw = svw = 0.0
+            for u in range(bx * b, min(W, bx * b + b)):
+                r = up[u]
+                n += cn[u]
+                su += r * cn[u]
+                sv += cv[u]
+                sw += cw[u]
+                suu += r * r * cn[u]
+                suv += r * cv[u]
+                svv += cvv[u]
+                suw += r * cw[u]
+                svw += cvw[u]
+            M[by, bx, 0] = n
+            M[by, bx, 1] = su
+            M[by, bx, 2] = sv
+            M[by, bx, 3] = sw
+            M[by, bx, 4] = suu
+            M[by, bx, 5] = suv
+            M[by, bx, 6] = svv
+            M[by, bx, 7] = suw
+            M[by, bx, 8] = svw
 
-    # pass 2: theta of each block from the 3 x 3 blocks around it, as the gain of the axial theta term
-    # c_theta theta / (pi/2 - theta)^2, spread over the block's pixel columns
+    # pass 2: theta of each block from the (2 radius + 1)^2 blocks around it, as the gain of the axial
+    # theta term c_theta theta / (pi/2 - theta)^2, spread over the block's pixel columns. The window
+    # sum is separable: over the block rows first (Vs), then over the block columns.
     gain_px = np.empty((nby, W))
     for by in prange(nby):
-        S = np.empty(10)
+        Vs = np.zeros((nbx, 9))
+        for i in range(max(0, by - radius), min(nby, by + radius + 1)):
+            for bx in range(nbx):
+                for c in range(9):
+                    Vs[bx, c] += M[i, bx, c]
+        S = np.empty(9)
         for bx in range(nbx):
-            S[:] = 0.0
-            for i in range(max(0, by - 1), min(nby, by + 2)):
-                for j in range(max(0, bx - 1), min(nbx, bx + 2)):
-                    for c in range(10):
-                        S[c] += M[i, j, c]
-            t = min(_theta_from_moments(S, min_points, degenerate_rel), theta_max)
-            g = ct * t / ((0.5 * math.pi - t) * (0.5 * math.pi - t))
+            g = 0.0
+            if M[by, bx, 0] > 0.0:      # a block without valid pixels needs no gain
+                S[:] = 0.0
+                for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
+                    for c in range(9):
+                        S[c] += Vs[j, c]
+                t = min(_theta_from_inverse_depth_moments(S, min_points, degenerate_rel), theta_max)
+                g = ct * t / ((0.5 * math.pi - t) * (0.5 * math.pi - t))
             for u in range(bx * b, min(W, bx * b + b)):
                 gain_px[by, u] = g
 
@@ -245,87 +251,99 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     P22, P23, P24 = P[2, 2], P[2, 3], P[2, 4]
     P33, P34, P35, P44, P45, P55 = P[3, 3], P[3, 4], P[3, 5], P[4, 4], P[4, 5], P[5, 5]
 
-    # pass 3, per row: (a) compact the valid pixels and find their edges (scalar: neighbours), then
-    # (b) the arithmetic over contiguous (3, N) buffers, branch-free so that it vectorises.
-    # Loop (a) parks u in pix, z in pts[2] and the lateral x variance in hcov[0]; (b) overwrites them.
-    for v in prange(H):
-        if rowcount[v] == 0:
-            continue
-        k0 = offsets[v]
-        k = k0
-        z_prev = 0.0
-        valid_prev = False
-        z = depth[v, 0] * scale
-        valid = z > 0.0 and z >= zmin and z <= zmax and np.isfinite(z)
-        for u in range(W):
-            z_next = 0.0
-            valid_next = False
-            if u < W - 1:
-                z_next = depth[v, u + 1] * scale
-                valid_next = z_next > 0.0 and z_next >= zmin and z_next <= zmax and np.isfinite(z_next)
-            if valid:
-                thr = max(jump_rel * z, thr_sig * (c0 + c1 * z + c2 * z * z))
-                left = u > 0 and ((not valid_prev) or z_prev - z > thr)
-                right = u < W - 1 and ((not valid_next) or z_next - z > thr)
-                if left:
-                    var_x = sLR2 if right else sL2
-                elif right:
-                    var_x = sR2
-                else:
-                    var_x = -1.0   # interior: the pixel footprint, computed in (b)
-                pix[k] = u
-                pts[2, k] = z
-                hcov[0, k] = var_x
-                k += 1
-            z_prev = z
-            valid_prev = valid
-            z = z_next
-            valid = valid_next
+    # pass 3, per block row (its row buffers allocated once) and per row: (a) z with NaN for invalid
+    # pixels, (b) the lateral x variance from the depth edges, (c) compaction of the valid pixels
+    # (u, z, var_x) into the row buffers, (d) the arithmetic over the compacted pixels, written to
+    # the outputs. (a), (b) and (d) vectorise; (c) is a scalar but branch-free loop (every pixel is
+    # stored, the count only advances on valid ones). (d) is bound by its stores, 64 B per point.
+    # (a) uses pass 1's validity test, so k == rowcount[v] and rows never write into each other's
+    # output ranges.
+    nan = np.nan
+    half = (nby + 1) // 2
+    for ib in prange(nby):
+        # even block rows first, then the odd ones: numba gives each thread one contiguous range of
+        # iterations, and valid pixels are often uneven over the image (sky, floor out of range).
+        # int64: the prange index may be typed unsigned, and unsigned with signed gives float64.
+        rank = np.int64(ib)
+        by = 2 * rank if rank < half else 2 * (rank - half) + 1
+        zp = np.empty(W + 2)         # z of the row, padded: zp[u + 1] = z[u]
+        vx = np.empty(W)
+        cu = np.empty(W, dtype=np.int64)
+        cz = np.empty(W)
+        cvx = np.empty(W)
+        # -inf beyond the image: not NaN (invalid) and never farther by more than thr, so the image
+        # border is no edge
+        zp[0] = -np.inf
+        zp[W + 1] = -np.inf
+        for v in range(by * b, min(H, by * b + b)):
+            if rowcount[v] == 0:
+                continue
+            for u in range(W):
+                z = depth[v, u] * scale
+                zp[u + 1] = z if (z >= zmin) & (z <= zmax) else nan
+            # an edge where the neighbour is invalid (NaN: the comparison fails) or farther by more
+            # than thr; interior pixels get the pixel footprint
+            for u in range(W):
+                z = zp[u + 1]
+                # noise part with this pixel's sigma_z(z, theta), as noise_model.depth_edges(theta=...)
+                thr = max(jump_rel * z, thr_sig * (c0 + c1 * z + c2 * z * z + gain_px[by, u] * z * math.sqrt(z)))
+                left = not (zp[u] - z <= thr)
+                right = not (zp[u + 2] - z <= thr)
+                var_x = sR2 if right else z * z * pix_var_x
+                vx[u] = (sLR2 if right else sL2) if left else var_x
+            k = 0
+            for u in range(W):
+                z = zp[u + 1]
+                cu[k] = u
+                cz[k] = z
+                cvx[k] = vx[u]
+                k += 0 if np.isnan(z) else 1
 
-        ry = (v - cy) * inv_fy
-        gain_row = gain_px[v // b]
-        b0 = R01 * ry + R02      # a = R r = R[:, 0] rx + (R[:, 1] ry + R[:, 2])
-        b1 = R11 * ry + R12
-        b2 = R21 * ry + R22
-        base = v * W
-        for i in range(k0, k):
-            u = pix[i]
-            z = pts[2, i]
-            var_x = hcov[0, i]
-            zz = z * z
-            var_x = zz * pix_var_x if var_x < 0.0 else var_x
-            var_y = zz * pix_var_y
-            sig = c0 + c1 * z + c2 * zz + gain_row[u] * z * math.sqrt(z)
-            s2 = sig * sig
-            rx = (u - cx) * inv_fx
-            a0 = R00 * rx + b0
-            a1 = R10 * rx + b1
-            a2 = R20 * rx + b2
-            cxx = s2 * a0 * a0 + var_x * R00 * R00 + var_y * R01 * R01
-            cxy = s2 * a0 * a1 + var_x * R00 * R10 + var_y * R01 * R11
-            cyy = s2 * a1 * a1 + var_x * R10 * R10 + var_y * R11 * R11
-            czz = s2 * a2 * a2 + var_x * R20 * R20 + var_y * R21 * R21
-            q0 = z * a0                          # camera centre -> point, map frame
-            q1 = z * a1
-            q2 = z * a2
-            if use_pose:
-                cxx += (P00 + 2.0 * (q2 * P04 - q1 * P05) + q2 * q2 * P44 - 2.0 * q1 * q2 * P45
-                        + q1 * q1 * P55)
-                cyy += (P11 + 2.0 * (q0 * P15 - q2 * P13) + q2 * q2 * P33 - 2.0 * q0 * q2 * P35
-                        + q0 * q0 * P55)
-                czz += (P22 + 2.0 * (q1 * P23 - q0 * P24) + q1 * q1 * P33 - 2.0 * q0 * q1 * P34
-                        + q0 * q0 * P44)
-                cxy += (P01 - q2 * P03 + q0 * P05
-                        + q2 * (P14 - q2 * P34 + q0 * P45)
-                        - q1 * (P15 - q2 * P35 + q0 * P55))
-            pts[0, i] = q0 + t0
-            pts[1, i] = q1 + t1
-            pts[2, i] = q2 + t2
-            hvar[i] = czz
-            hcov[0, i] = cxx
-            hcov[1, i] = cxy
-            hcov[2, i] = cyy
-            pix[i] = base + u
+            # unsigned output index: no wraparound select, so the stores below are contiguous
+            k0 = np.uint64(offsets[v])
+            vv = vp[v]
+            b0 = R01 * vv + R02      # a = R r = R[:, 0] u' + (R[:, 1] v' + R[:, 2])
+            b1 = R11 * vv + R12
+            b2 = R21 * vv + R22
+            base = v * W
+            for j in range(np.uint64(k)):
+                u = cu[j]
+                z = cz[j]
+                var_x = cvx[j]
+                zz = z * z
+                var_y = zz * pix_var_y
+                sig = c0 + c1 * z + c2 * zz + gain_px[by, u] * z * math.sqrt(z)
+                s2 = sig * sig
+                ru = up[u]
+                a0 = R00 * ru + b0
+                a1 = R10 * ru + b1
+                a2 = R20 * ru + b2
+                cxx = s2 * a0 * a0 + var_x * R00 * R00 + var_y * R01 * R01
+                cxy = s2 * a0 * a1 + var_x * R00 * R10 + var_y * R01 * R11
+                cyy = s2 * a1 * a1 + var_x * R10 * R10 + var_y * R11 * R11
+                czz = s2 * a2 * a2 + var_x * R20 * R20 + var_y * R21 * R21
+                q0 = z * a0                          # camera centre -> point, map frame
+                q1 = z * a1
+                q2 = z * a2
+                if use_pose:
+                    cxx += (P00 + 2.0 * (q2 * P04 - q1 * P05) + q2 * q2 * P44 - 2.0 * q1 * q2 * P45
+                            + q1 * q1 * P55)
+                    cyy += (P11 + 2.0 * (q0 * P15 - q2 * P13) + q2 * q2 * P33 - 2.0 * q0 * q2 * P35
+                            + q0 * q0 * P55)
+                    czz += (P22 + 2.0 * (q1 * P23 - q0 * P24) + q1 * q1 * P33 - 2.0 * q0 * q1 * P34
+                            + q0 * q0 * P44)
+                    cxy += (P01 - q2 * P03 + q0 * P05
+                            + q2 * (P14 - q2 * P34 + q0 * P45)
+                            - q1 * (P15 - q2 * P35 + q0 * P55))
+                i = k0 + j
+                pts[0, i] = q0 + t0
+                pts[1, i] = q1 + t1
+                pts[2, i] = q2 + t2
+                hvar[i] = czz
+                hcov[0, i] = cxx
+                hcov[1, i] = cxy
+                hcov[2, i] = cyy
+                pix[i] = base + u
     return offsets[H]
 
 
@@ -353,7 +371,7 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
                         workspace: Workspace | None = None) -> MapPoints:
     """A depth frame's valid points in the map frame with their height variance and horizontal covariance.
 
-    numba, parallel over rows; equal to :func:`depth_to_map_points_reference`.
+    numba, parallel over block rows; equal to :func:`depth_to_map_points_reference`.
 
     Parameters
     ----------
@@ -396,7 +414,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     numba.set_num_threads(n)
     try:
         N = _depth_to_map_kernel(d, scale, intr, T, np.zeros((6, 6)) if P is None else P, P is not None,
-                                 model.params_array(), edge, np.array([zmin, zmax]), b, NORMAL_MIN_POINTS,
+                                 model.params_array(), edge, np.array([zmin, zmax]), b, WINDOW_RADIUS_BLOCKS,
+                                 NORMAL_MIN_POINTS,
                                  _DEGENERATE_REL, ws.points_map, ws.height_var, ws.horizontal_cov,
                                  ws.pixel)
     finally:
@@ -420,7 +439,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     z = depth_to_metres(d, None if d.dtype != np.uint16 else scale, zmin, zmax)
     pts = deproject(z, K)
     theta = incidence_angles(pts, block_px=b)
-    left, right = depth_edges(z, model=model)
+    left, right = depth_edges(z, model=model, theta=theta)
     valid = np.isfinite(z)
     pix = np.flatnonzero(valid.ravel())
     p = pts.reshape(-1, 3)[pix]

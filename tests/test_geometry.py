@@ -97,3 +97,34 @@ def test_depth_edges_threshold_is_relative_and_noise_aware():
 def test_depth_edges_rejects_bad_thresholds():
     with pytest.raises(ValueError, match="jump_rel"):
         depth_edges(np.ones((3, 3)), jump_rel=-1)
+
+
+@pytest.mark.parametrize("distance, yaw", [(1.0, 0.0), (1.0, 45.0), (2.0, 0.0), (2.0, 45.0), (1.5, 60.0)])
+def test_single_noisy_frame_gives_unbiased_angles_and_sigmas(distance, yaw):
+    # one frame of the paper's noise: the inverse-depth fit must not inflate theta (a 3-D PCA fit
+    # did, by +5 to +17 deg, because the noise along the rays tilts its normal)
+    from noise_model import axial_sigma
+    from noise_model.sim import simulate_target_frames
+
+    K = D435.intrinsics(424, 240)
+    z_true, theta_true = render_planar_target(K, 424, 240, distance, yaw)
+    z = simulate_target_frames(K, 424, 240, distance, 1, np.random.default_rng(4), yaw_deg=yaw)[0] * 0.001
+    z[(z < 0.3) | (z > 4.0)] = 0.0
+    theta = incidence_angles(deproject(z, K))
+    ok = np.isfinite(theta) & (z_true < 10.0)     # far rays whose noise landed in range are no test
+    assert abs(math.degrees(np.median(theta[ok] - theta_true[ok]))) < 1.5
+    ratio = axial_sigma(z[ok], theta[ok]) / axial_sigma(z_true[ok], theta_true[ok])
+    assert 0.9 < np.median(ratio) < 1.07
+
+
+def test_noise_on_an_oblique_wall_is_not_taken_for_edges():
+    from noise_model.sim import simulate_target_frames
+
+    K = D435.intrinsics(424, 240)
+    z = simulate_target_frames(K, 424, 240, 2.0, 1, np.random.default_rng(1), yaw_deg=45.0)[0] * 0.001
+    z[(z < 0.3) | (z > 4.0)] = 0.0
+    theta = incidence_angles(deproject(z, K))
+    left, right = depth_edges(z, theta=theta)
+    assert (left | right)[np.isfinite(theta)].mean() < 0.04       # 32 % with the head-on threshold
+    with pytest.raises(ValueError, match="theta must have the depth image's shape"):
+        depth_edges(z, theta=np.zeros((3, 3)))
