@@ -1,0 +1,409 @@
+"""Per-cell Kalman fusion of one frame of map-frame points, in information form.
+
+For each cell, the frame's points are gated against the cell's prior (h, sigma_p^2) with the
+Mahalanobis distance |z - h| / sqrt(sigma^2 + sigma_p^2) (threshold 2.5 by default). The accepted
+points are summed in information form, W = sum 1/sigma_i^2 and WZ = sum z_i/sigma_i^2, and combined
+once with the prior:
+
+    sigma_post^2 = 1 / (1/sigma_p^2 + W),   h_post = sigma_post^2 (h/sigma_p^2 + WZ),
+
+which is the sequential Kalman update without its order dependence. An unknown cell takes the
+frame's weighted mean and 1/W.
+
+Change: a single outlier (or a few) is ignored. When a cell's rejected points are at least
+``change_min_points`` and outnumber its accepted ones, the terrain has changed (a box put down, a
+step): the prior's variance is inflated by the squared distance to the rejected points' mean, so that
+the next frame's points pass the gate and pull the cell over; when the inflated variance exceeds
+``max_variance``, the cell is re-initialised from the rejected points at once.
+
+Information cap (correlated pixels): with ``max_points_per_frame = n_eff`` a frame adds at most the
+information of n_eff average points to a cell (its weights are scaled by n_eff / n when n > n_eff),
+because neighbouring D435 pixels share their errors and hundreds of them are not hundreds of
+independent measurements.
+
+After the update variances are clamped below at ``min_variance``; a cell whose variance exceeds
+``max_variance`` becomes unknown.
+
+Parallel accumulation is race-free: the points are cut into ``PARTIALS`` fixed contiguous ranges,
+each summed into its own partial grid, and the partial grids are merged per cell in a fixed order,
+so the result is the same bit for bit whatever the thread count. Partial grids are reset lazily
+(a per-cell frame stamp), so a frame costs work only in the cells it touches.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from noise_model.kernels import FASTMATH, resolve_threads
+
+from .layers import (
+    ELEVATION,
+    HVAR_X,
+    HVAR_XY,
+    HVAR_Y,
+    LAYERS,
+    MAX_HEIGHT,
+    MIN_HEIGHT,
+    POINTS,
+    TIME,
+    UPPER_BOUND,
+    VARIANCE,
+)
+
+__all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "fuse_frame_reference", "PARTIALS"]
+
+_JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
+
+#: Number of partial grids (fixed, so that the summation order never depends on the thread count).
+PARTIALS = 8
+# accumulator fields per partial grid and cell
+(A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, R_W, R_WZ, R_N, R_ZMIN, R_ZMAX, H_X, H_XY, H_Y) = range(13)
+NACC = 13
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """Parameters of the measurement update.
+
+    Attributes
+    ----------
+    mahalanobis_threshold : float
+        Gate on |z - h| / sqrt(sigma^2 + sigma_p^2) [-].
+    min_variance, max_variance : float
+        Clamp of the cell variance [m^2]; above ``max_variance`` a cell becomes unknown.
+    min_horizontal_variance : float or None
+        Floor of the horizontal variances [m^2]; (resolution / 2)^2 when None (as ANYbotics).
+    max_horizontal_variance : float
+        Ceiling of the horizontal variances [m^2].
+    change_min_points : int
+        Rejected points needed (and more than accepted) before a cell is taken to have changed.
+    max_points_per_frame : float or None
+        The information cap n_eff (None: off).
+    """
+
+    mahalanobis_threshold: float = 2.5
+    min_variance: float = 1e-8
+    max_variance: float = 0.04
+    min_horizontal_variance: float | None = None
+    max_horizontal_variance: float = 0.5
+    change_min_points: int = 3
+    max_points_per_frame: float | None = None
+
+    def __post_init__(self):
+        for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        if self.min_variance >= self.max_variance:
+            raise ValueError("min_variance must be below max_variance")
+        if self.min_horizontal_variance is not None and not (
+                math.isfinite(self.min_horizontal_variance) and self.min_horizontal_variance > 0):
+            raise ValueError(f"min_horizontal_variance must be finite and > 0, got {self.min_horizontal_variance!r}")
+        if int(self.change_min_points) < 1:
+            raise ValueError(f"change_min_points must be >= 1, got {self.change_min_points!r}")
+        if self.max_points_per_frame is not None and not (
+                math.isfinite(self.max_points_per_frame) and self.max_points_per_frame >= 1):
+            raise ValueError(f"max_points_per_frame must be None or >= 1, got {self.max_points_per_frame!r}")
+
+    def array(self, resolution_m: float) -> np.ndarray:
+        """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off)."""
+        min_h = (resolution_m / 2) ** 2 if self.min_horizontal_variance is None else self.min_horizontal_variance
+        return np.array([self.mahalanobis_threshold, self.min_variance, self.max_variance, min_h,
+                         self.max_horizontal_variance, float(self.change_min_points),
+                         0.0 if self.max_points_per_frame is None else float(self.max_points_per_frame)])
+
+
+class FusionWorkspace:
+    """Partial grids of the fusion kernel, kept across frames (reset lazily by frame stamps)."""
+
+    def __init__(self, n: int):
+        self.n = int(n)
+        self.acc = np.zeros((PARTIALS, self.n * self.n, NACC))
+        self.stamp = np.full((PARTIALS, self.n * self.n), -1, dtype=np.int64)
+        self.frame = 0
+
+
+# ---------------------------------------------------------------------------------------------
+# numba
+# ---------------------------------------------------------------------------------------------
+@njit(**_JIT)
+def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h, stamp,
+                params):
+    """Combine one cell's frame sums with its prior and write the cell (see the module docstring)."""
+    thr, min_var, max_var, min_h, max_h, change_min, cap = (
+        params[0], params[1], params[2], params[3], params[4], params[5], params[6])
+    h = data[ELEVATION, bi, bj]
+    v = data[VARIANCE, bi, bj]
+    known = not np.isnan(h)
+    if cap > 0.0 and N > cap:
+        s = cap / N
+        W *= s
+        WZ *= s
+    if cap > 0.0 and Nr > cap:
+        s = cap / Nr
+        Wr *= s
+        WZr *= s
+    reset = False
+    updated = False
+    changed = known and Nr >= change_min and Nr > N
+    if changed:
+        mr = WZr / Wr
+        v = v + (mr - h) * (mr - h)
+        if v > max_var:
+            reset = True
+            h = mr
+            v = 1.0 / Wr
+            data[MIN_HEIGHT, bi, bj] = zminr
+            data[MAX_HEIGHT, bi, bj] = zmaxr
+            data[POINTS, bi, bj] = Nr
+            data[HVAR_X, bi, bj] = min_h
+            data[HVAR_Y, bi, bj] = min_h
+            data[HVAR_XY, bi, bj] = 0.0
+            data[UPPER_BOUND, bi, bj] = np.nan
+            data[TIME, bi, bj] = stamp
+            updated = True
+    if not reset and N > 0.0:
+        if known:
+            ip = 1.0 / v
+            v = 1.0 / (ip + W)
+            h = (ip * h + WZ) * v
+            data[MIN_HEIGHT, bi, bj] = min(data[MIN_HEIGHT, bi, bj], zmin)
+            data[MAX_HEIGHT, bi, bj] = max(data[MAX_HEIGHT, bi, bj], zmax)
+            data[POINTS, bi, bj] += N
+        else:
+            v = 1.0 / W
+            h = WZ * v
+            data[MIN_HEIGHT, bi, bj] = zmin
+            data[MAX_HEIGHT, bi, bj] = zmax
+            data[POINTS, bi, bj] = N
+            data[UPPER_BOUND, bi, bj] = np.nan
+        hx, hxy, hy = min_h, 0.0, min_h
+        if has_h:
+            hx = min(max(Hx, min_h), max_h)
+            hy = min(max(Hy, min_h), max_h)
+            hxy = Hxy
+        data[HVAR_X, bi, bj] = hx
+        data[HVAR_Y, bi, bj] = hy
+        data[HVAR_XY, bi, bj] = hxy
+        data[TIME, bi, bj] = stamp
+        updated = True
+    if not updated and not changed:       # only a few rejected points: the cell stays as it was
+        return
+    v = max(v, min_var)
+    if v > max_var:
+        for layer in range(data.shape[0]):
+            data[layer, bi, bj] = np.nan
+        data[POINTS, bi, bj] = 0.0
+        return
+    data[ELEVATION, bi, bj] = h
+    data[VARIANCE, bi, bj] = v
+    ub = data[UPPER_BOUND, bi, bj]
+    if ub < h:                     # the terrain rose above an old free-space bound: the bound is stale
+        data[UPPER_BOUND, bi, bj] = np.nan
+
+
+@njit(parallel=True, **_JIT)
+def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, acc, acc_stamp, fid):
+    n = data.shape[1]
+    P = acc.shape[0]
+    N = x.shape[0]
+    thr2 = params[0] * params[0]
+    sx = gx0 % n
+    sy = gy0 % n
+    inf = np.inf
+    for p in prange(P):
+        lo = (N * p) // P
+        hi = (N * (p + 1)) // P
+        for k in range(lo, hi):
+            fi = math.floor(x[k] / res) - gx0
+            fj = math.floor(y[k] / res) - gy0
+            if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
+                continue
+            bi = int(fi) + sx
+            if bi >= n:
+                bi -= n
+            bj = int(fj) + sy
+            if bj >= n:
+                bj -= n
+            c = bi * n + bj
+            if acc_stamp[p, c] != fid:
+                acc_stamp[p, c] = fid
+                for f in range(NACC):
+                    acc[p, c, f] = 0.0
+                acc[p, c, A_ZMIN] = inf
+                acc[p, c, R_ZMIN] = inf
+                acc[p, c, A_ZMAX] = -inf
+                acc[p, c, R_ZMAX] = -inf
+            zk = z[k]
+            vk = var[k]
+            w = 1.0 / vk
+            h = data[ELEVATION, bi, bj]
+            d = zk - h
+            if (not np.isnan(h)) and d * d > thr2 * (vk + data[VARIANCE, bi, bj]):
+                acc[p, c, R_W] += w
+                acc[p, c, R_WZ] += w * zk
+                acc[p, c, R_N] += 1.0
+                acc[p, c, R_ZMIN] = min(acc[p, c, R_ZMIN], zk)
+                acc[p, c, R_ZMAX] = max(acc[p, c, R_ZMAX], zk)
+            else:
+                acc[p, c, A_W] += w
+                acc[p, c, A_WZ] += w * zk
+                acc[p, c, A_N] += 1.0
+                acc[p, c, A_ZMIN] = min(acc[p, c, A_ZMIN], zk)
+                acc[p, c, A_ZMAX] = max(acc[p, c, A_ZMAX], zk)
+                if has_h:
+                    acc[p, c, H_X] += w * hcov[k, 0]
+                    acc[p, c, H_XY] += w * hcov[k, 1]
+                    acc[p, c, H_Y] += w * hcov[k, 2]
+    touched = 0
+    for c in prange(n * n):
+        W = WZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = 0.0
+        zmin = zminr = inf
+        zmax = zmaxr = -inf
+        seen = False
+        for p in range(P):
+            if acc_stamp[p, c] == fid:
+                seen = True
+                W += acc[p, c, A_W]
+                WZ += acc[p, c, A_WZ]
+                Nn += acc[p, c, A_N]
+                zmin = min(zmin, acc[p, c, A_ZMIN])
+                zmax = max(zmax, acc[p, c, A_ZMAX])
+                Wr += acc[p, c, R_W]
+                WZr += acc[p, c, R_WZ]
+                Nr += acc[p, c, R_N]
+                zminr = min(zminr, acc[p, c, R_ZMIN])
+                zmaxr = max(zmaxr, acc[p, c, R_ZMAX])
+                Hx += acc[p, c, H_X]
+                Hxy += acc[p, c, H_XY]
+                Hy += acc[p, c, H_Y]
+        if not seen:
+            continue
+        touched += 1
+        if W > 0.0:
+            Hx /= W
+            Hxy /= W
+            Hy /= W
+        _merge_cell(data, c // n, c % n, W, WZ, Nn, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h,
+                    stamp, params)
+    return touched
+
+
+# ---------------------------------------------------------------------------------------------
+# public entries
+# ---------------------------------------------------------------------------------------------
+def _cells(geom_n, gx0, gy0, res, x, y):
+    """Buffer cell index of each point and the mask of those inside the window (NumPy)."""
+    fi = np.floor(x / res) - gx0
+    fj = np.floor(y / res) - gy0
+    inside = (fi >= 0) & (fi < geom_n) & (fj >= 0) & (fj < geom_n)
+    bi = (fi[inside].astype(np.int64) + gx0) % geom_n
+    bj = (fj[inside].astype(np.int64) + gy0) % geom_n
+    return bi * geom_n + bj, inside
+
+
+def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params: FusionParams,
+               workspace: FusionWorkspace, nthreads=None) -> int:
+    """Fuse one frame into ``data`` (len(LAYERS), n, n) in place (numba); returns the cells touched.
+
+    Inputs are assumed validated by the caller (``ElevationMap.update``).
+    """
+    n = resolve_threads(nthreads)
+    has_h = horizontal_cov is not None
+    h = horizontal_cov if has_h else np.zeros((1, 3))
+    workspace.frame += 1
+    previous = numba.get_num_threads()
+    numba.set_num_threads(n)
+    try:
+        return int(_fuse_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, points_map[:, 0],
+                                points_map[:, 1], points_map[:, 2], height_var, h, has_h, float(stamp),
+                                params.array(geometry.resolution_m), workspace.acc, workspace.stamp,
+                                workspace.frame))
+    finally:
+        numba.set_num_threads(previous)
+
+
+def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov, stamp,
+                         params: FusionParams) -> int:
+    """NumPy reference of :func:`fuse_frame`: the same update, vectorised with bincount."""
+    g = geometry
+    n = g.n
+    p = params.array(g.resolution_m)
+    thr, min_var, max_var, min_h, max_h, change_min, cap = p
+    x, y, z = points_map[:, 0], points_map[:, 1], points_map[:, 2]
+    c, inside = _cells(n, g.gx0, g.gy0, g.resolution_m, x, y)
+    z, var = z[inside], height_var[inside]
+    hc = None if horizontal_cov is None else horizontal_cov[inside]
+    flat = data.reshape(len(LAYERS), n * n)            # a view: writes go to data
+    h0, v0 = flat[ELEVATION, c], flat[VARIANCE, c]
+    rej = ~np.isnan(h0) & ((z - h0) ** 2 > thr * thr * (var + v0))
+    acc = ~rej
+    w = 1.0 / var
+    m = n * n
+
+    def bc(mask, weights=None):
+        return np.bincount(c[mask], weights=None if weights is None else weights[mask], minlength=m).astype(float)
+
+    def extreme(mask, fn, init):
+        out = np.full(m, init)
+        fn.at(out, c[mask], z[mask])
+        return out
+
+    W, WZ, N = bc(acc, w), bc(acc, w * z), bc(acc)
+    Wr, WZr, Nr = bc(rej, w), bc(rej, w * z), bc(rej)
+    zmin, zmax = extreme(acc, np.minimum, np.inf), extreme(acc, np.maximum, -np.inf)
+    zminr, zmaxr = extreme(rej, np.minimum, np.inf), extreme(rej, np.maximum, -np.inf)
+    seen = (N + Nr) > 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if hc is not None:
+            Hx, Hxy, Hy = (bc(acc, w * hc[:, k]) / W for k in range(3))
+        if cap > 0:
+            s = np.where(N > cap, cap / np.maximum(N, 1), 1.0)
+            W, WZ = W * s, WZ * s
+            sr = np.where(Nr > cap, cap / np.maximum(Nr, 1), 1.0)
+            Wr, WZr = Wr * sr, WZr * sr
+        h, v = flat[ELEVATION].copy(), flat[VARIANCE].copy()
+        known = ~np.isnan(h)
+        change = seen & known & (Nr >= change_min) & (Nr > N)
+        mr = WZr / Wr
+        v = np.where(change, v + (mr - h) ** 2, v)
+        reset = change & (v > max_var)
+        fuse = seen & ~reset & (N > 0)
+        fuse_known = fuse & known
+        fuse_new = fuse & ~known
+        v_post = np.where(fuse_known, 1.0 / (1.0 / v + W), np.where(fuse_new, 1.0 / W, v))
+        h_post = np.where(fuse_known, (h / v + WZ) * v_post, np.where(fuse_new, WZ / W, h))
+        h_post = np.where(reset, mr, h_post)
+        v_post = np.where(reset, 1.0 / Wr, v_post)
+    L = flat
+    L[MIN_HEIGHT] = np.where(reset, zminr, np.where(fuse_known, np.minimum(L[MIN_HEIGHT], zmin),
+                                                     np.where(fuse_new, zmin, L[MIN_HEIGHT])))
+    L[MAX_HEIGHT] = np.where(reset, zmaxr, np.where(fuse_known, np.maximum(L[MAX_HEIGHT], zmax),
+                                                     np.where(fuse_new, zmax, L[MAX_HEIGHT])))
+    L[POINTS] = np.where(reset, Nr, np.where(fuse_known, L[POINTS] + N, np.where(fuse_new, N, L[POINTS])))
+    if hc is not None:
+        hx, hy, hxy = np.clip(Hx, min_h, max_h), np.clip(Hy, min_h, max_h), Hxy
+    else:
+        hx, hy, hxy = min_h, min_h, 0.0
+    upd = reset | fuse
+    L[HVAR_X] = np.where(reset, min_h, np.where(fuse, hx, L[HVAR_X]))
+    L[HVAR_Y] = np.where(reset, min_h, np.where(fuse, hy, L[HVAR_Y]))
+    L[HVAR_XY] = np.where(reset, 0.0, np.where(fuse, hxy, L[HVAR_XY]))
+    L[TIME] = np.where(upd, float(stamp), L[TIME])
+    L[UPPER_BOUND] = np.where(reset | fuse_new, np.nan, L[UPPER_BOUND])
+    write = upd | change
+    v_post = np.where(write, np.maximum(v_post, min_var), v_post)
+    expire = write & (v_post > max_var)
+    L[ELEVATION] = np.where(write, h_post, L[ELEVATION])
+    L[VARIANCE] = np.where(write, v_post, L[VARIANCE])
+    with np.errstate(invalid="ignore"):
+        stale = write & (L[UPPER_BOUND] < L[ELEVATION])
+    L[UPPER_BOUND] = np.where(stale, np.nan, L[UPPER_BOUND])
+    L[:, expire] = np.nan
+    L[POINTS, expire] = 0.0
+    return int(seen.sum())
