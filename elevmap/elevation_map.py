@@ -172,7 +172,11 @@ class ElevationMap:
                 raise ValueError(f"sensor_origin_map must be 3 finite numbers [m], got {sensor_origin_map!r}")
         if impl not in ("numba", "numpy"):
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
-        p = np.ascontiguousarray(p)
+        return self._update_validated(np.ascontiguousarray(p), var, hcov, stamp, origin, impl)
+
+    def _update_validated(self, p, var, hcov, stamp: float, origin, impl: str = "numba") -> dict:
+        """:meth:`update` on inputs already validated (the mapper's hot path: kernel output is)."""
+        n_pts = len(p)
         if impl == "numba":
             touched = fusion.fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params, self._ws,
                                         self.nthreads)

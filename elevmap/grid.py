@@ -48,7 +48,7 @@ class GridGeometry:
 
     @classmethod
     def centred(cls, length_m: float, resolution_m: float, centre_xy=(0.0, 0.0)) -> "GridGeometry":
-        """A window of about ``length_m`` [m] per side, centred at the lattice point nearest ``centre_xy``."""
+        """A window of about ``length_m`` [m] per side, centred on ``centre_xy`` (see :meth:`moved_to`)."""
         res = float(resolution_m)
         if not (math.isfinite(res) and res > 0):
             raise ValueError(f"resolution_m must be finite and > 0, got {resolution_m!r}")
@@ -82,14 +82,20 @@ class GridGeometry:
         return np.array([self.gx0 * self.resolution_m, self.gy0 * self.resolution_m])
 
     def moved_to(self, centre_xy) -> "GridGeometry":
-        """The window re-centred at the lattice point nearest ``centre_xy`` (whole cells)."""
+        """The window re-centred on ``centre_xy`` [m] in whole cells.
+
+        With n even the window's centre is the lattice point nearest ``centre_xy``; with n odd it is
+        the centre of the cell that contains ``centre_xy``. Either way the robot's cell is one of the
+        middle cells, never near an edge.
+        """
         c = np.asarray(centre_xy, dtype=np.float64)
         if c.shape != (2,) or not np.all(np.isfinite(c)):
             raise ValueError(f"centre_xy must be 2 finite numbers [m], got {centre_xy!r}")
         res = self.resolution_m
         half = self.n // 2
-        gx0 = int(math.floor(c[0] / res + 0.5)) - half
-        gy0 = int(math.floor(c[1] / res + 0.5)) - half
+        offset = 0.5 if self.n % 2 == 0 else 0.0
+        gx0 = int(math.floor(c[0] / res + offset)) - half
+        gy0 = int(math.floor(c[1] / res + offset)) - half
         return GridGeometry(self.n, res, gx0, gy0)
 
     # -- positions and indices -------------------------------------------------------------------
