@@ -222,6 +222,60 @@ class ElevationMap:
         """Fraction of known cells."""
         return float(np.isfinite(self.data[0]).mean())
 
+    # -- prediction and fused map (elevmap.prediction) -------------------------------------------
+    def predict(self, relative_pose_cov=None, T_map_base=None, dt=None, time_variance_rate: float = 0.0, *,
+                impl: str = "numba") -> dict:
+        """Process-noise step before a frame: see :func:`elevmap.prediction.predict`.
+
+        ``impl="numpy"`` runs the NumPy reference. Returns ``{"cells_expired": int}``.
+        """
+        from . import prediction
+
+        if impl not in ("numba", "numpy"):
+            raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
+        fn = prediction.predict if impl == "numba" else prediction.predict_reference
+        return fn(self, relative_pose_cov, T_map_base, dt, time_variance_rate)
+
+    def fused_map(self, *, impl: str = "numba") -> dict:
+        """EM's ellipse-weighted fused layers, map-index order: see :func:`elevmap.prediction.fused_map`."""
+        from . import prediction
+
+        if impl not in ("numba", "numpy"):
+            raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
+        return prediction.fused_map(self) if impl == "numba" else prediction.fused_map_reference(self)
+
+    # -- queries and files (elevmap.queries) -----------------------------------------------------
+    def height_at(self, xy):
+        """Height [m] and variance [m^2] at map-frame points (2,) or (M, 2); see :func:`elevmap.queries.height_at`."""
+        from . import queries
+
+        return queries.height_at(self, xy)
+
+    def height_scan(self, T_map_base, pattern="legged_gym", feet_base=None, fill=float("nan")):
+        """Heights on a scan pattern around the base; see :func:`elevmap.queries.height_scan`."""
+        from . import queries
+
+        return queries.height_scan(self, T_map_base, pattern=pattern, feet_base=feet_base, fill=fill)
+
+    def to_grid_map(self, layers=None, *, frame_id: str = "map") -> dict:
+        """grid_map message content; see :func:`elevmap.queries.to_grid_map`."""
+        from . import queries
+
+        return queries.to_grid_map(self, layers, frame_id=frame_id)
+
+    def save(self, path) -> None:
+        """Write the map to one .npz file atomically; see :func:`elevmap.queries.save`."""
+        from . import queries
+
+        queries.save(self, path)
+
+    @classmethod
+    def load(cls, path) -> "ElevationMap":
+        """Read a map written by :meth:`save`; see :func:`elevmap.queries.load`."""
+        from . import queries
+
+        return queries._load(path, cls)
+
     def __repr__(self) -> str:
         c = self.centre_xy
         return (f"ElevationMap({self.n}x{self.n} cells of {self.resolution_m} m, centre ({c[0]:.2f}, {c[1]:.2f}), "
