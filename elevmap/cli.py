@@ -33,6 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference-frames", type=int, default=10,
                    help="timed frames of the NumPy references (default: 10)")
     p.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
+    p.add_argument("--only", default=None, metavar="GROUPS",
+                   help="comma-separated subset of: noise, mapper, move_to, height_scan, first_frame")
     p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -53,7 +55,11 @@ def _cmd_bench(args) -> int:
 
     if args.frames < 1 or args.reference_frames < 1:
         raise ValueError("--frames and --reference-frames must be >= 1")
-    report = run_bench(args.frames, args.reference_frames, args.threads, show_progress=not args.no_progress)
+    from .bench import GROUPS
+
+    groups = GROUPS if args.only is None else tuple(g.strip() for g in args.only.split(",") if g.strip())
+    report = run_bench(args.frames, args.reference_frames, args.threads, show_progress=not args.no_progress,
+                       groups=groups)
     print(format_table(report))
     if args.json:
         write_json_atomic(args.json, report)

@@ -20,7 +20,7 @@ import numpy as np
 from .checks import check_intrinsics, check_positive_scalar
 from .d435 import D435, SensorModel, _axial_sigma_unchecked
 
-__all__ = ["target_rotation", "camera_extrinsics", "render_planar_target", "simulate_target_frames"]
+__all__ = ["target_rotation", "camera_extrinsics", "render_planar_target", "render_floor", "simulate_target_frames"]
 
 
 def target_rotation(yaw_deg: float = 0.0, pitch_deg: float = 0.0) -> np.ndarray:
@@ -126,6 +126,40 @@ def render_planar_target(K, width: int, height: int, distance_m: float, yaw_deg:
         z = np.where(behind, bg, z)
         theta = np.where(behind, 0.0, theta)
     return z, theta
+
+
+def render_floor(K, width: int, height: int, T_map_cam, floor_z: float = 0.0, max_range_m: float = 10.0):
+    """Noise-free z-depth and incidence angle of the horizontal floor z = ``floor_z`` (map frame).
+
+    Parameters
+    ----------
+    K : array_like, shape (3, 3)
+        Intrinsics [px].
+    width, height : int
+        Image size [px].
+    T_map_cam : array_like, shape (4, 4)
+        Camera pose: maps camera-frame points into the map frame (z up).
+    floor_z : float
+        Height of the floor [m].
+    max_range_m : float
+        Hits farther than this (z-depth) are no data [m].
+
+    Returns
+    -------
+    z_true, theta : ndarray, shape (height, width)
+        z-depth [m] and angle between the floor normal and the optical axis [rad]; NaN where the
+        ray misses the floor.
+    """
+    K = check_intrinsics(K)
+    T = np.asarray(T_map_cam, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    rx, ry = _rays(K, int(width), int(height))
+    dz = R[2, 0] * rx + R[2, 1] * ry + R[2, 2]          # map-z change per unit of camera z
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (float(floor_z) - t[2]) / dz
+    hit = np.isfinite(z) & (z > 0) & (z <= float(max_range_m))
+    theta = math.acos(min(1.0, abs(R[2, 2])))
+    return np.where(hit, z, np.nan), np.where(hit, theta, np.nan)
 
 
 def simulate_target_frames(K, width: int, height: int, distance_m: float, n_frames: int,

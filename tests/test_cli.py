@@ -11,14 +11,18 @@ from elevmap.cli import main
 
 def test_bench_writes_one_record_per_kernel_size_and_implementation(tmp_path, capsys):
     out = tmp_path / "bench.json"
-    assert main(["bench", "--frames", "3", "--reference-frames", "1", "--json", str(out), "--no-progress"]) == 0
+    assert main(["bench", "--only", "noise,move_to,height_scan", "--frames", "3", "--reference-frames", "1",
+                 "--json", str(out), "--no-progress"]) == 0
     report = json.loads(out.read_text())
     keys = {(r["name"], r["width"], r["height"], r["impl"]) for r in report["results"]}
     assert keys == {("noise", 848, 480, "numba"), ("noise", 848, 480, "numpy"),
-                    ("noise", 424, 240, "numba"), ("noise", 424, 240, "numpy")}
+                    ("noise", 424, 240, "numba"), ("noise", 424, 240, "numpy"),
+                    ("move_to", 200, 200, "numpy"), ("height_scan", 395, 1, "numba"), ("height_scan", 395, 1, "numpy")}
     for r in report["results"]:
         assert r["median_ms"] > 0 and r["points_per_s"] > 0
-        assert r["points"] > 0.9 * r["width"] * r["height"] * 0.5
+    for r in report["results"]:
+        if r["name"] == "noise":
+            assert r["points"] > 0.9 * r["width"] * r["height"] * 0.5
     assert "speed-up" in capsys.readouterr().out
     assert [p.name for p in tmp_path.iterdir()] == ["bench.json"]
 
@@ -26,6 +30,8 @@ def test_bench_writes_one_record_per_kernel_size_and_implementation(tmp_path, ca
 def test_bad_arguments_are_reported_not_raised(capsys):
     assert main(["bench", "--frames", "0"]) == 2
     assert "must be >= 1" in capsys.readouterr().err
+    assert main(["bench", "--only", "nonsense"]) == 2
+    assert "unknown bench group" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["no-such-command"])
 
