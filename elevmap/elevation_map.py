@@ -184,17 +184,17 @@ class ElevationMap:
             touched = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params)
         cleared = 0
         if origin is not None and self.visibility_cleanup and n_pts:
-            cleared = self._visibility(origin, p, stamp, impl)
+            cleared = self._visibility(origin, p, var, stamp, impl)
         self.frames += 1
         self.last_stamp = stamp
         return {"cells_updated": touched, "cells_cleared": cleared}
 
-    def _visibility(self, origin, points_map, stamp, impl) -> int:
+    def _visibility(self, origin, points_map, height_var, stamp, impl) -> int:
         from . import visibility
 
         fn = visibility.visibility_cleanup if impl == "numba" else visibility.visibility_cleanup_reference
         return fn(self.data, self.geometry, origin, points_map, stamp, stride=self.cleanup_stride,
-                  nthreads=self.nthreads)
+                  nthreads=self.nthreads, height_var=height_var)
 
     # -- robot-centric motion --------------------------------------------------------------------
     def move_to(self, xy) -> dict:
