@@ -92,7 +92,8 @@ def _check_inputs(data, geometry, sensor_origin_map, points_map, stamp, stride):
         p = p.astype(np.float64)
     elif not np.issubdtype(p.dtype, np.floating):
         raise ValueError(f"points_map must be floating point metres, got dtype {p.dtype}")
-    p = np.ascontiguousarray(p, dtype=np.float64)
+    if p.dtype != np.float64:
+        p = p.astype(np.float64)       # any memory layout will do: the mapper's (N, 3) views are F-ordered
     if len(p) >= 2 ** 31 - 1:
         raise ValueError(f"points_map has {len(p)} points; at most 2**31 - 2 per frame")
     if isinstance(stride, (bool, np.bool_)) or not isinstance(stride, (int, np.integer)):
@@ -258,9 +259,11 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
     sy = gy0 % n
     # 1. per-partial lowest point of each cell (map order), points in fixed contiguous ranges
     low = np.empty((P, nn), dtype=np.int32)          # point indices (N < 2**31, checked)
+    lowz = np.empty((P, nn))                         # their ray-end heights (no sqrt recomputed)
     bad = np.zeros(P, dtype=np.int64)
     for p in prange(P):
         lp = low[p]
+        lz = lowz[p]
         for c in range(nn):
             lp[c] = -1
         lo = (N * p) // P
@@ -275,9 +278,10 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
             if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
                 continue
             c = int(fi) * n + int(fj)
-            b = lp[c]
-            if b < 0 or _zend(pts, zvar, margin, k) < _zend(pts, zvar, margin, b):   # ties: smaller index
+            zk = _zend(pts, zvar, margin, k)
+            if lp[c] < 0 or zk < lz[c]:                 # k increases: ties keep the smaller index
                 lp[c] = np.int32(k)
+                lz[c] = zk
         bad[p] = nbad
     if bad.sum() > 0:
         return -1                                   # non-finite points: nothing has been changed
@@ -285,12 +289,14 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
     best = np.empty(nn, dtype=np.int64)
     for c in prange(nn):
         b = np.int64(-1)
+        zb = np.inf
         for p in range(P):
             k = low[p, c]
             if k >= 0:
-                zk = _zend(pts, zvar, margin, k)
-                if b < 0 or zk < _zend(pts, zvar, margin, b) or (zk == _zend(pts, zvar, margin, b) and k < b):
+                zk = lowz[p, c]
+                if b < 0 or zk < zb or (zk == zb and k < b):
                     b = k
+                    zb = zk
         best[c] = b
     # 2. rays: cells with points in map order, every stride-th
     nr = 0
