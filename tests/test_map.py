@@ -240,3 +240,41 @@ def test_geometry_rejects_bad_windows():
         GridGeometry.centred(0.01, 0.04)
     with pytest.raises(ValueError, match="too large"):
         GridGeometry.centred(1e4, 0.01)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31), ops=st.lists(st.sampled_from(["update", "predict", "move", "query"]),
+                                                 min_size=1, max_size=8))
+def test_fuzz_all_public_entries_keep_the_map_valid(tmp_path, seed, ops):
+    rng = np.random.default_rng(seed)
+    m = ElevationMap(2.0, 0.2)
+    T = np.eye(4)
+    for k, op in enumerate(ops):
+        if op == "update":
+            n = int(rng.integers(0, 200))
+            pts = np.column_stack([rng.uniform(-1.5, 1.5, (n, 2)), rng.normal(0, 0.3, n)])
+            m.update(pts, rng.uniform(1e-6, 1e-2, n), stamp=float(k),
+                     sensor_origin_map=np.append(rng.uniform(-1, 1, 2), rng.uniform(0.2, 1.0)))
+        elif op == "predict":
+            A = rng.normal(size=(6, 6)) * rng.choice([1e-4, 1e-2])
+            m.predict(A @ A.T, T_map_base=T, dt=float(rng.uniform(0, 1)), time_variance_rate=1e-4)
+        elif op == "move":
+            m.move_to(rng.uniform(-1, 1, 2))
+        else:
+            h, v = m.height_at(rng.uniform(-2, 2, (20, 2)))
+            assert np.all(np.isnan(h) == np.isnan(v)) and np.all(v[np.isfinite(v)] > 0)
+            scan = m.height_scan(T, "legged_gym")
+            assert scan.height.shape == (187,) and np.all(scan.known == np.isfinite(scan.height))
+            fused = m.fused_map()
+            known = np.isfinite(fused["elevation"])
+            assert np.all(fused["lower_bound"][known] <= fused["upper_bound"][known])
+        L = m.layers()
+        known = np.isfinite(L["elevation"])
+        assert np.all(np.isfinite(L["variance"][known])) and np.all(L["variance"][known] > 0)
+        assert np.all(np.isnan(L["variance"][~known]))
+        for name in ("horizontal_variance_x", "horizontal_variance_y"):
+            assert np.all(L[name][known] > 0)
+    path = tmp_path / f"map-{seed}.npz"
+    m.save(path)
+    back = ElevationMap.load(path)
+    np.testing.assert_array_equal(back.data, m.data)
