@@ -94,6 +94,7 @@ class Mapper:
         self.cameras: dict[str, Camera] = {}
         self._workspaces: dict[str, nm.Workspace] = {}
         self.last_timing: dict = {}
+        self.last_points: nm.MapPoints | None = None     # the last frame's points (views, until the next frame)
         for cam in cameras:
             self.add_camera(cam)
 
@@ -165,4 +166,5 @@ class Mapper:
         stats.update(points=int(len(pts.pixel)), noise_ms=1e3 * (t1 - t0), fusion_ms=1e3 * (t2 - t1),
                      total_ms=1e3 * (t2 - t0))
         self.last_timing = stats
+        self.last_points = pts
         return stats

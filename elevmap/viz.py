@@ -52,6 +52,9 @@ __all__ = [
     "log_series_plot",
     "colormap",
     "default_blueprint",
+    "log_height_mesh",
+    "log_trail",
+    "log_exact",
     "PLOT_CANVAS",
     "PLOT_VISUAL_BOUNDS",
     "SERIES_COLORS",
@@ -754,3 +757,64 @@ def default_blueprint(depth_entities: Sequence[str] = (), plot_entities: Sequenc
     parts = [rrb.Horizontal(left_c, rrb.Vertical(*right), column_shares=[3, 2]) if right else left_c]
     parts.append(rrb.TimePanel(state="collapsed", timeline=timeline))
     return rrb.Blueprint(*parts, collapse_panels=False)
+
+
+# ---------------------------------------------------------------------------------------------
+# Mapping views
+# ---------------------------------------------------------------------------------------------
+def log_height_mesh(rec: rr.RecordingStream, entity: str, x_centres, y_centres, height, colors,
+                    static: bool = False) -> int:
+    """Log a height field as a triangle mesh over its known cells.
+
+    Parameters
+    ----------
+    x_centres, y_centres : array_like, shape (n,), (m,)
+        Cell-centre coordinates of rows and columns [m], map frame.
+    height : array_like, shape (n, m)
+        Height per cell [m]; NaN cells are left out (a quad needs its four corners known).
+    colors : array_like, shape (n, m, 3), uint8
+        Colour per cell.
+
+    Returns
+    -------
+    int
+        Number of triangles logged.
+    """
+    h = np.asarray(height, dtype=np.float64)
+    xs, ys = np.asarray(x_centres, dtype=np.float64), np.asarray(y_centres, dtype=np.float64)
+    if h.shape != (len(xs), len(ys)):
+        raise ValueError(f"height must have shape ({len(xs)}, {len(ys)}), got {h.shape}")
+    c = np.asarray(colors, dtype=np.uint8).reshape(h.size, -1)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    known = np.isfinite(h)
+    quad = known[:-1, :-1] & known[1:, :-1] & known[:-1, 1:] & known[1:, 1:]
+    if not quad.any():
+        rec.log(entity, rr.Clear(recursive=False), static=static)
+        return 0
+    n, m = h.shape
+    idx = np.arange(n * m).reshape(n, m)
+    a, b, cc, d = idx[:-1, :-1][quad], idx[1:, :-1][quad], idx[:-1, 1:][quad], idx[1:, 1:][quad]
+    tris = np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, cc], 1)])
+    used, inverse = np.unique(tris, return_inverse=True)
+    verts = np.column_stack([X.ravel()[used], Y.ravel()[used], np.nan_to_num(h.ravel()[used])]).astype(np.float32)
+    rec.log(entity, rr.Mesh3D(vertex_positions=verts, triangle_indices=inverse.reshape(-1, 3).astype(np.uint32),
+                              vertex_colors=c[used]), static=static)
+    return int(len(tris))
+
+
+def log_trail(rec: rr.RecordingStream, entity: str, positions, color=(255, 200, 0), radius: float = 0.01) -> None:
+    """The path travelled so far as one line strip; positions (K, 3) [m], map frame."""
+    p = np.asarray(positions, dtype=np.float32)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"positions must have shape (K, 3), got {p.shape}")
+    rec.log(entity, rr.LineStrips3D([p], colors=[color], radii=[radius]))
+
+
+def log_exact(rec: rr.RecordingStream, entity: str, static: bool = False, **arrays) -> None:
+    """Log float64 arrays losslessly as ``AnyValues`` (rerun's transforms and pinholes are float32).
+
+    The project's own recordings keep each frame's K, pose, pose covariance, stamp and depth scale
+    here, so that a replay reproduces the mapped frames bit for bit.
+    """
+    values = {k: np.atleast_1d(np.asarray(v, dtype=np.float64)).ravel() for k, v in arrays.items() if v is not None}
+    rec.log(entity, rr.AnyValues(**values), static=static)

@@ -1,0 +1,279 @@
+"""Source -> mapper -> map -> viewer: the loop behind ``elevmap run``, ``replay`` and ``demo``.
+
+Frames come from any source (:mod:`elevmap.sources`); each is fused by a :class:`Mapper` into a
+robot-centric :class:`ElevationMap`; when the frames carry the true terrain (the simulator), the map
+is scored against it; with a recording path every frame goes to rerun through :mod:`elevmap.viz`
+(imported only then), laid out so that :class:`elevmap.sources.rrd.RrdSource` replays it bit-exact.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .elevation_map import ElevationMap
+from .frame import Frame
+from .fusion import FusionParams
+from .mapper import Camera, Mapper
+
+__all__ = ["MappingConfig", "run_mapping", "map_error"]
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """Settings of a mapping run.
+
+    Attributes
+    ----------
+    length_m, resolution_m : float
+        Map size and cell size [m].
+    fusion : FusionParams
+        Measurement update parameters.
+    visibility_cleanup : bool
+        Clear cells rays pass below.
+    follow : bool
+        Re-centre the map on the camera every frame (robot-centric).
+    score_every : int
+        Score against the truth every k frames (and at the last).
+    log_every, mesh_every : int
+        Log the frame every k frames; the map meshes every k logged frames.
+    max_points, max_ellipsoids : int
+        Sub-sampled points and covariance ellipsoids logged per frame.
+    """
+
+    length_m: float = 8.0
+    resolution_m: float = 0.04
+    fusion: FusionParams = FusionParams()
+    visibility_cleanup: bool = True
+    follow: bool = True
+    score_every: int = 1
+    log_every: int = 1
+    mesh_every: int = 5
+    max_points: int = 4000
+    max_ellipsoids: int = 300
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MappingConfig":
+        """From a TOML/JSON table: ``[map]`` keys of this class plus a ``[map.fusion]`` sub-table."""
+        known = {f for f in cls.__dataclass_fields__}
+        bad = set(d) - known
+        if bad:
+            raise ValueError(f"unknown mapping setting(s) {sorted(bad)}; known: {sorted(known)}")
+        d = dict(d)
+        if "fusion" in d:
+            f = d["fusion"]
+            if not isinstance(f, dict):
+                raise ValueError("[map.fusion] must be a table")
+            fknown = set(FusionParams.__dataclass_fields__)
+            if set(f) - fknown:
+                raise ValueError(f"unknown fusion setting(s) {sorted(set(f) - fknown)}; known: {sorted(fknown)}")
+            d["fusion"] = FusionParams(**f)
+        return cls(**d)
+
+
+def map_error(emap: ElevationMap, truth_height) -> dict:
+    """The map against the true terrain at the centres of its known cells.
+
+    Parameters
+    ----------
+    truth_height : callable
+        xy (M, 2) [m] -> true height (M,) [m], map frame.
+
+    Returns
+    -------
+    dict
+        rmse_m, p95_abs_m, mean_error_m (bias), coverage_1sigma, coverage_2sigma, known_cells.
+    """
+    h, v = emap.layer("elevation"), emap.layer("variance")
+    known = np.isfinite(h)
+    if not known.any():
+        return {"rmse_m": math.nan, "p95_abs_m": math.nan, "mean_error_m": math.nan, "coverage_1sigma": math.nan,
+                "coverage_2sigma": math.nan, "known_cells": 0}
+    xs, ys = emap.cell_centres()
+    ii, jj = np.nonzero(known)
+    truth = np.asarray(truth_height(np.column_stack([xs[ii], ys[jj]])), dtype=np.float64)
+    err = h[known] - truth
+    z = np.abs(err) / np.sqrt(v[known])
+    return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "p95_abs_m": float(np.percentile(np.abs(err), 95)),
+            "mean_error_m": float(np.mean(err)), "coverage_1sigma": float(np.mean(z <= 1.0)),
+            "coverage_2sigma": float(np.mean(z <= 2.0)), "known_cells": int(known.sum())}
+
+
+def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=None, spawn: bool = False,
+                truth_height=None, show_progress: bool = True, total: int | None = None,
+                application_id: str = "elevmap", nthreads: int | None = None, notes: str | None = None) -> dict:
+    """Map a sequence of :class:`Frame` records; optionally record everything to rerun.
+
+    Parameters
+    ----------
+    frames : iterable of Frame
+    config : MappingConfig
+    rrd_path : path, optional
+        Write a rerun recording there (atomically: nothing is left if the run fails).
+    spawn : bool
+        Also stream to a rerun viewer.
+    truth_height : callable, optional
+        xy (M, 2) -> true height (M,) [m]; else taken from each frame's ``truth["height"]``.
+    show_progress : bool
+        A progress bar (tqdm).
+    total : int, optional
+        Number of frames, for the progress bar.
+
+    Returns
+    -------
+    dict
+        frames, per-frame timing [ms] (median, p95, mean), final map statistics and, with a truth,
+        its error (:func:`map_error`), plus the map itself under "map" (an ElevationMap).
+    """
+    from tqdm import tqdm
+
+    emap = ElevationMap(config.length_m, config.resolution_m, fusion_params=config.fusion,
+                        visibility_cleanup=config.visibility_cleanup, nthreads=nthreads)
+    mapper = Mapper(emap, nthreads=nthreads)
+    recording = None
+    if rrd_path is not None or spawn:
+        from . import viz
+
+        recording = viz.open_recording(rrd_path, application_id, spawn=spawn)
+    times, scores, trail = [], [], []
+    truth_fn = truth_height
+    n_frames = 0
+    first_stamp = None
+    try:
+        rec = recording.__enter__() if recording is not None else None
+        logger = _Logger(rec, config, notes) if rec is not None else None
+        for frame in tqdm(frames, total=total, desc="mapping", unit="frame", disable=not show_progress):
+            if not isinstance(frame, Frame):
+                raise ValueError(f"sources must yield elevmap.frame.Frame records, got {type(frame).__name__}")
+            if frame.camera not in mapper.cameras:
+                mapper.add_camera(Camera(frame.camera, frame.K, frame.width, frame.height,
+                                         depth_scale=frame.depth_scale))
+            cam = mapper.cameras[frame.camera]
+            if not np.array_equal(cam.K, frame.K):
+                raise ValueError(f"camera {frame.camera!r} changed its intrinsics at frame {frame.index}")
+            T = np.eye(4) if frame.T_map_cam is None else frame.T_map_cam
+            if first_stamp is None:
+                first_stamp = frame.stamp
+            if config.follow:
+                emap.move_to(T[:2, 3])
+            stats = mapper.integrate(frame.camera, frame.depth, T_map_cam=T, pose_cov=frame.pose_cov,
+                                     stamp=frame.stamp)
+            times.append(stats["total_ms"])
+            trail.append(T[:3, 3].copy())
+            fn = truth_fn or frame.truth.get("height")
+            score = None
+            if fn is not None and (n_frames % config.score_every == 0):
+                score = map_error(emap, fn)
+                scores.append(score)
+            if logger is not None and n_frames % config.log_every == 0:
+                logger.log(n_frames, frame, T, emap, mapper, stats, score, trail, first_stamp)
+            n_frames += 1
+        final = map_error(emap, truth_fn or _last_truth(frame if n_frames else None)) if (
+            n_frames and (truth_fn or _last_truth(frame))) else None
+        if logger is not None and n_frames:
+            logger.final(emap, final)
+    except BaseException as exc:
+        if recording is not None:
+            recording.__exit__(type(exc), exc, exc.__traceback__)
+        raise
+    if recording is not None:
+        recording.__exit__(None, None, None)
+    t = np.array(times) if times else np.array([math.nan])
+    out = {"frames": n_frames, "ms_per_frame_median": float(np.median(t)), "ms_per_frame_p95": float(np.percentile(t, 95)),
+           "ms_per_frame_mean": float(np.mean(t)), "known_fraction": emap.known_fraction(),
+           "map_cells": emap.n ** 2, "resolution_m": emap.resolution_m, "map": emap}
+    if final is not None:
+        out["error"] = final
+    if rrd_path is not None:
+        out["rrd"] = str(rrd_path)
+    return out
+
+
+def _last_truth(frame):
+    return None if frame is None else frame.truth.get("height")
+
+
+class _Logger:
+    """Everything a mapping run sends to rerun (through elevmap.viz, the project's rerun module)."""
+
+    def __init__(self, rec, config: MappingConfig, notes):
+        from . import viz
+
+        self.viz = viz
+        self.rec = rec
+        self.config = config
+        self.cameras = set()
+        self.logged = 0
+        viz.log_world_frame(rec, "world")
+        if notes:
+            viz.log_text(rec, "notes", notes)
+
+    def log(self, i, frame: Frame, T, emap, mapper, stats, score, trail, first_stamp):
+        viz, rec = self.viz, self.rec
+        cam = frame.camera
+        if cam not in self.cameras:
+            self.cameras.add(cam)
+            viz.log_camera(rec, f"world/{cam}/depth", frame.K, frame.width, frame.height, static=True)
+            self._blueprint()
+        viz.set_time(rec, "frame", sequence=i)
+        viz.set_time(rec, "time", seconds=frame.stamp - first_stamp)
+        viz.log_transform(rec, f"world/{cam}", T)
+        meter = None if frame.depth_scale is None else 1.0 / frame.depth_scale
+        viz.log_depth(rec, f"world/{cam}/depth", frame.depth, meter=meter)
+        viz.log_exact(rec, f"meta/{cam}", K=frame.K, T_map_cam=T, pose_cov=frame.pose_cov, stamp=frame.stamp,
+                      depth_scale=frame.depth_scale, index=frame.index)
+        viz.log_trail(rec, "world/trail", np.array(trail))
+        pts = mapper.last_points
+        if pts is not None and len(pts.pixel):
+            k = np.linspace(0, len(pts.pixel) - 1, min(self.config.max_points, len(pts.pixel))).astype(np.int64)
+            p = np.asarray(pts.points_map)[k]
+            viz.log_points(rec, "world/points", p, colors=viz.colormap(p[:, 2], *_span(p[:, 2])), radii=0.005)
+            k = k[:: max(1, len(k) // self.config.max_ellipsoids)]
+            hc = np.asarray(pts.horizontal_cov)[k]
+            cov = np.zeros((len(k), 3, 3))
+            cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 0], cov[:, 1, 1] = hc[:, 0], hc[:, 1], hc[:, 1], hc[:, 2]
+            cov[:, 2, 2] = np.asarray(pts.height_var)[k]
+            viz.log_covariance_ellipsoids(rec, "world/points_cov", np.asarray(pts.points_map)[k], cov)
+        viz.log_scalar(rec, "plots/ms_per_frame", stats["total_ms"])
+        viz.log_scalar(rec, "plots/known_cells", int(np.isfinite(emap.data[0]).sum()))
+        var = emap.data[1][np.isfinite(emap.data[1])]
+        if var.size:
+            viz.log_scalar(rec, "plots/mean_sigma_m", float(np.mean(np.sqrt(var))))
+        if score is not None and score["known_cells"]:
+            viz.log_scalar(rec, "plots/error_rmse_m", score["rmse_m"])
+            viz.log_scalar(rec, "plots/coverage_2sigma", score["coverage_2sigma"])
+        if self.logged % self.config.mesh_every == 0:
+            self._meshes(emap)
+        self.logged += 1
+
+    def _meshes(self, emap):
+        viz = self.viz
+        xs, ys = emap.cell_centres()
+        h = emap.layer("elevation")
+        sigma = np.sqrt(emap.layer("variance"))
+        viz.log_height_mesh(self.rec, "world/map/elevation", xs, ys, h, viz.colormap(h, *_span(h)))
+        viz.log_height_mesh(self.rec, "world/map/sigma", xs, ys, h, viz.colormap(sigma, 0.001, 0.1, log=True))
+
+    def final(self, emap, error):
+        self._meshes(emap)
+        if error is not None:
+            self.viz.log_text(self.rec, "result", "\n".join(f"- {k}: {v:.4g}" for k, v in error.items()))
+
+    def _blueprint(self):
+        bp = self.viz.default_blueprint(
+            depth_entities=[f"world/{c}/depth" for c in sorted(self.cameras)],
+            time_series_entities=["plots"], world="world", timeline="frame",
+            hidden_entities=["world/map/sigma", "world/points_cov"])
+        self.rec.send_blueprint(bp)
+
+
+def _span(values) -> tuple[float, float]:
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return 0.0, 1.0
+    lo, hi = np.percentile(v, [2, 98])
+    return float(lo), float(max(hi, lo + 1e-3))
