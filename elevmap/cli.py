@@ -24,7 +24,30 @@ def build_parser() -> argparse.ArgumentParser:
                                    "`rerun demo.rrd`.")
     p.add_argument("--rrd", default="demo.rrd", help="recording to write (default: demo.rrd)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
+    p.add_argument("--noise-model", action="store_true",
+                   help="instead: the noise model alone (walls at 1 and 2 m, head-on and at 45 deg)")
+    p.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    for name, help_, desc in (
+            ("run", "map any source (camera, .bag/.db3, .rrd, capture set, PNG folder, simulator)",
+             "Map a source of D435 depth frames into a robot-centric elevation map.\n\n"),
+            ("replay", "map a rerun recording (.rrd)",
+             "Replay a rerun recording's depth frames through the mapper.\n\n")):
+        p = sub.add_parser(name, help=help_, formatter_class=argparse.RawDescriptionHelpFormatter,
+                           description=desc + _source_help())
+        p.add_argument("source", metavar="SOURCE" if name == "run" else "FILE.rrd")
+        p.add_argument("--rrd", metavar="PATH", help="write a rerun recording of the run")
+        p.add_argument("--spawn", action="store_true", help="stream to a rerun viewer")
+        p.add_argument("--config", metavar="FILE.toml", help="settings: [map] and [map.fusion] tables")
+        p.add_argument("--poses", metavar="FILE", help="pose file (TUM text or Open3D .log) for any source")
+        p.add_argument("--intrinsics", metavar="FILE.json", help="intrinsics of a PNG folder")
+        p.add_argument("--frames", type=int, default=None, help="frames of a simulated walk")
+        p.add_argument("--seed", type=int, default=0, help="seed of a simulated walk (default: 0)")
+        p.add_argument("--json", metavar="PATH", help="write the run's summary as JSON")
+        p.add_argument("--overwrite", action="store_true", help="replace an existing --rrd/--json file")
+        p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     p = sub.add_parser("bench", help="time the numba kernels against their NumPy references",
                        description="Median per-frame time of each compiled kernel after warm-up, next to its "
@@ -40,13 +63,110 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _cmd_demo(args) -> int:
-    from .demo import run_noise_demo
+def _source_help() -> str:
+    from .sources.open import SOURCE_HELP
 
-    summary = run_noise_demo(args.rrd, seed=args.seed, show_progress=not args.no_progress)
-    print(json.dumps(summary, indent=2))
-    print(f"wrote {args.rrd}; open it with: rerun {args.rrd}")
+    return SOURCE_HELP
+
+
+def _cmd_demo(args) -> int:
+    if args.noise_model:
+        from .demo import run_noise_demo
+
+        summary = run_noise_demo(args.rrd, seed=args.seed, show_progress=not args.no_progress)
+        print(json.dumps(summary, indent=2))
+    else:
+        from .demo import run_mapping_demo
+
+        summary = run_mapping_demo(args.rrd, seed=args.seed, n_frames=args.frames,
+                                   show_progress=not args.no_progress, spawn=args.spawn)
+        _print_summary(summary)
+    print(f"wrote {args.rrd}; open it with: .venv/bin/rerun {args.rrd}")
     return 0
+
+
+def _load_config(path):
+    import tomllib
+
+    from .pipeline import MappingConfig
+
+    if path is None:
+        return MappingConfig()
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such config file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path}: not valid TOML ({exc})") from None
+    bad = set(doc) - {"map"}
+    if bad:
+        raise ValueError(f"{path}: unknown table(s) {sorted(bad)}; expected [map] and [map.fusion]")
+    try:
+        return MappingConfig.from_dict(doc.get("map", {}))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def _check_output(path, overwrite: bool, source=None):
+    from pathlib import Path
+
+    if path is None:
+        return
+    p = Path(path)
+    if source is not None and Path(source).exists() and p.resolve() == Path(source).resolve():
+        raise ValueError(f"{path} is the source itself; choose another output")
+    if p.exists() and not overwrite:
+        raise ValueError(f"{path} exists; pass --overwrite to replace it")
+
+
+def _print_summary(summary: dict) -> None:
+    shown = {k: v for k, v in summary.items() if k != "map"}
+    print(json.dumps(shown, indent=2, default=float))
+    err = summary.get("error")
+    line = (f"{summary['frames']} frames, {summary['ms_per_frame_median']:.2f} ms per frame (median), "
+            f"{100 * summary['known_fraction']:.1f}% of the map known")
+    if err:
+        line += (f"; against the true terrain: RMSE {1000 * err['rmse_m']:.1f} mm, 95th percentile "
+                 f"{1000 * err['p95_abs_m']:.1f} mm, 2-sigma coverage {100 * err['coverage_2sigma']:.1f}%")
+    print(line)
+
+
+def _cmd_run(args) -> int:
+    from .fileio import write_json_atomic
+    from .pipeline import run_mapping
+    from .sources.open import open_source
+
+    if args.command == "replay" and not str(args.source).lower().endswith(".rrd"):
+        raise ValueError(f"{args.source}: replay takes a rerun recording (.rrd); use `elevmap run` for others")
+    config = _load_config(args.config)
+    _check_output(args.rrd, args.overwrite, args.source)
+    _check_output(args.json, args.overwrite, args.source)
+    if args.frames is not None and args.frames < 1:
+        raise ValueError("--frames must be >= 1")
+    src = open_source(args.source, poses=args.poses, intrinsics=args.intrinsics, frames=args.frames,
+                      seed=args.seed)
+    total = len(src) if hasattr(src, "__len__") else None
+    with src if hasattr(src, "__enter__") else _nullcontext(src) as frames:
+        summary = run_mapping(frames, config, rrd_path=args.rrd, spawn=args.spawn, total=total,
+                              show_progress=not args.no_progress, notes=f"elevmap {args.command} {args.source}")
+    _print_summary(summary)
+    if args.json:
+        write_json_atomic(args.json, {k: v for k, v in summary.items() if k != "map"})
+    if args.rrd:
+        print(f"wrote {args.rrd}; open it with: .venv/bin/rerun {args.rrd}")
+    return 0
+
+
+class _nullcontext:
+    def __init__(self, obj):
+        self.obj = obj
+
+    def __enter__(self):
+        return self.obj
+
+    def __exit__(self, *exc):
+        return None
 
 
 def _cmd_bench(args) -> int:
@@ -67,7 +187,7 @@ def _cmd_bench(args) -> int:
     return 0
 
 
-COMMANDS = {"demo": _cmd_demo, "bench": _cmd_bench}
+COMMANDS = {"demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
 
 
 def main(argv=None) -> int:

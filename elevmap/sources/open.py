@@ -1,0 +1,104 @@
+"""Open any source from a command-line style specification.
+
+=========================  ======================================================================
+SOURCE                     what it opens
+=========================  ======================================================================
+``live`` / ``live:SERIAL`` a connected RealSense camera (848x480 at 30 fps by default)
+``FILE.bag``, ``.db3``     a RealSense SDK recording, played back without dropping frames
+``FILE.rrd``               a rerun recording with a DepthImage under a Pinhole
+``FOLDER`` (captures.json) a capture set (``d435-captures/1``): every capture's frames in turn
+``FOLDER`` (PNG files)     16-bit depth PNGs + intrinsics JSON (+ a pose file)
+``sim:SCENE``              the simulator walking a robot through SCENE (stairs, boxes, slope, rough)
+=========================  ======================================================================
+
+A pose file (TUM text or Open3D .log) attaches poses to any source, interpolated to each frame's
+stamp; without one a source's own poses are used, or the camera is static.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+__all__ = ["open_source", "SOURCE_HELP"]
+
+SOURCE_HELP = __doc__
+
+
+def open_source(spec: str, *, poses=None, intrinsics=None, frames: int | None = None, seed: int = 0,
+                T_pose_cam=None):
+    """Open the source ``spec`` (see the module docstring); returns an iterable of Frame records.
+
+    Parameters
+    ----------
+    spec : str
+        The source.
+    poses : path, optional
+        A pose file (TUM or Open3D .log) for any source.
+    intrinsics : path, optional
+        Intrinsics JSON for a PNG folder (found in the folder when not given).
+    frames : int, optional
+        Number of frames of a simulated walk.
+    seed : int
+        Seed of a simulated walk.
+    T_pose_cam : (4, 4), optional
+        Pose of the camera in the pose file's frame (identity by default).
+    """
+    src = _open(spec, intrinsics=intrinsics, frames=frames, seed=seed)
+    if poses is not None:
+        from .poses import read_pose_file, with_poses
+
+        src = with_poses(src, read_pose_file(poses), **({} if T_pose_cam is None else {"T_pose_cam": T_pose_cam}))
+    return src
+
+
+def _open(spec: str, *, intrinsics, frames, seed):
+    if spec == "live" or spec.startswith("live:"):
+        from .realsense import LiveRealSenseSource
+
+        serial = spec.split(":", 1)[1] if ":" in spec else None
+        return LiveRealSenseSource(serial=serial or None)
+    if spec.startswith("sim:"):
+        from .simulated import SimulatedWalk
+
+        return SimulatedWalk(spec.split(":", 1)[1], n_frames=frames, seed=seed)
+    path = Path(spec)
+    if not path.exists():
+        raise ValueError(f"{spec}: no such file or folder (nor 'live', 'live:SERIAL' or 'sim:SCENE')")
+    suffix = path.suffix.lower()
+    if path.is_file():
+        if suffix in (".bag", ".db3"):
+            from .realsense import RealSenseFileSource
+
+            return RealSenseFileSource(path)
+        if suffix == ".rrd":
+            from .rrd import RrdSource
+
+            return RrdSource(path)
+        raise ValueError(f"{spec}: unknown source type {suffix!r} (.bag, .db3, .rrd, a folder, live, sim:SCENE)")
+    if (path / "captures.json").is_file():
+        from .captures import read_capture_set
+
+        cs = read_capture_set(path)
+        return _CaptureFrames(cs)
+    if any(path.rglob("*.png")):
+        from .folder import DepthFolderSource
+
+        return DepthFolderSource(path, intrinsics)
+    raise ValueError(f"{spec}: a folder with neither captures.json nor depth PNGs")
+
+
+class _CaptureFrames:
+    """Every capture of a capture set, one after the other (each is a static camera)."""
+
+    def __init__(self, capture_set):
+        self.capture_set = capture_set
+
+    def __iter__(self):
+        for c in self.capture_set.captures:
+            yield from self.capture_set.frames(c["id"])
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
