@@ -50,7 +50,7 @@ def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
     return 1e3 * float(np.median(times))
 
 
-GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame")
+GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame", "render")
 MAPPER_SIZES = ((1280, 720), (848, 480), (424, 240))
 
 
@@ -153,6 +153,20 @@ def _bench_height_scan(frames, n, bar):
     return out
 
 
+def _bench_render(frames, n, bar):
+    """``render_depth`` of the stairs scene at 848x480 (numba) against its NumPy reference (1 frame)."""
+    from noise_model.scene import DEFAULT_T_BASE_CAM, Scene, render_depth, render_depth_reference, walk
+
+    scene = Scene.stairs_scene()
+    K = nm.D435.intrinsics(848, 480)
+    T = walk([[0.0, 0.0], [1.0, 0.0]], scene=scene)[0] @ DEFAULT_T_BASE_CAM
+    hits = int(np.isfinite(render_depth(scene, K, 848, 480, T, nthreads=n)[0]).sum())
+    fast = _median_ms(lambda: render_depth(scene, K, 848, 480, T, nthreads=n), frames, 5, bar)
+    ref = _median_ms(lambda: render_depth_reference(scene, K, 848, 480, T), 1, 0, bar)
+    return [_record("render", 848, 480, "numba", fast, hits, frames, n, scene="stairs"),
+            _record("render", 848, 480, "numpy", ref, hits, 1, 1, scene="stairs")]
+
+
 _FIRST_FRAME = r"""
 import time
 t0 = time.perf_counter()
@@ -221,7 +235,7 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     total = (("noise" in groups) * len(SIZES) * (frames + reference_frames)
              + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
              + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
-             + ("first_frame" in groups) * 2)
+             + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1))
     results = []
     with tqdm(total=total, desc="bench", unit="call", disable=not show_progress, leave=False) as bar:
         if "noise" in groups:
@@ -234,6 +248,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
             results += _bench_height_scan(frames, n, bar)
         if "first_frame" in groups:
             results += _bench_first_frame(bar)
+        if "render" in groups:
+            results += _bench_render(frames, n, bar)
     return {"results": results, "machine": machine_info(n)}
 
 

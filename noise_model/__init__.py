@@ -10,6 +10,8 @@ incidence_angles, depth_edges           theta per pixel; left/right depth-edge m
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
+Scene, render_depth, add_noise          scenes of primitives, numba ray casting, the reference noise
+walk, odometry_drift, simulate_walk     trajectories, odometry drift, simulated walks (noise_model.scene)
 
 This package never imports ``elevmap``, rerun, pyrealsense2 or OpenCV.
 """
@@ -25,9 +27,23 @@ from .checks import (
 )
 from .covariance import point_covariances, pose_jacobian, skew, to_map_frame
 from .d435 import D435, THETA_MAX_DEFAULT, SensorModel, axial_sigma, expected_rms_error
-from . import kernels, sim
+from . import kernels, scene, sim
 from .geometry import deproject, depth_edges, depth_to_metres, default_block_px, incidence_angles
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
+from .scene import (
+    Box,
+    HeightField,
+    Ramp,
+    Scene,
+    Stairs,
+    Target,
+    add_noise,
+    odometry_drift,
+    render_depth,
+    render_depth_reference,
+    simulate_walk,
+    walk,
+)
 
 __all__ = [
     "D435",
@@ -55,4 +71,16 @@ __all__ = [
     "check_points",
     "check_pose_cov",
     "check_transform",
+    "Scene",
+    "Box",
+    "Stairs",
+    "Ramp",
+    "HeightField",
+    "Target",
+    "render_depth",
+    "render_depth_reference",
+    "add_noise",
+    "walk",
+    "odometry_drift",
+    "simulate_walk",
 ]
