@@ -127,8 +127,9 @@ def _print_summary(summary: dict) -> None:
     line = (f"{summary['frames']} frames, {summary['ms_per_frame_median']:.2f} ms per frame (median), "
             f"{100 * summary['known_fraction']:.1f}% of the map known")
     if err:
-        line += (f"; against the true terrain: RMSE {1000 * err['rmse_m']:.1f} mm, 95th percentile "
-                 f"{1000 * err['p95_abs_m']:.1f} mm, 2-sigma coverage {100 * err['coverage_2sigma']:.1f}%")
+        line += (f"; against the true terrain: median |error| {1000 * err['median_abs_m']:.1f} mm, RMSE on flat "
+                 f"cells {1000 * err['flat_rmse_m']:.1f} mm and within {2} cells of step edges "
+                 f"{1000 * err['edge_rmse_m']:.0f} mm, 2-sigma coverage {100 * err['coverage_2sigma']:.1f}%")
     print(line)
 
 

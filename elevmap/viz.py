@@ -55,6 +55,7 @@ __all__ = [
     "log_height_mesh",
     "log_trail",
     "log_exact",
+    "log_depth_png",
     "PLOT_CANVAS",
     "PLOT_VISUAL_BOUNDS",
     "SERIES_COLORS",
@@ -818,3 +819,18 @@ def log_exact(rec: rr.RecordingStream, entity: str, static: bool = False, **arra
     """
     values = {k: np.atleast_1d(np.asarray(v, dtype=np.float64)).ravel() for k, v in arrays.items() if v is not None}
     rec.log(entity, rr.AnyValues(**values), static=static)
+
+
+def log_depth_png(rec: rr.RecordingStream, entity: str, depth_u16, meter: float, static: bool = False) -> None:
+    """Log uint16 depth losslessly PNG-compressed (``EncodedDepthImage``); about half the size of raw
+    noisy depth and a tenth of smooth depth. ``meter``: depth units per metre (1000 for 1 mm)."""
+    import cv2
+
+    d = np.asarray(depth_u16)
+    if d.dtype != np.uint16 or d.ndim != 2:
+        raise ValueError(f"depth must be a 2-D uint16 image, got {d.dtype} {d.shape}")
+    ok, png = cv2.imencode(".png", d)
+    if not ok:
+        raise ValueError("PNG encoding of the depth image failed")
+    rec.log(entity, rr.EncodedDepthImage(blob=png.tobytes(), media_type="image/png", meter=float(meter)),
+            static=static)

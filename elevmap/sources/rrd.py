@@ -77,7 +77,8 @@ def _load(path: Path, timeline: str | None):
         for ch in reader.stream():
             rb = ch.to_record_batch()
             names = rb.schema.names
-            comps = [c for c in names if c.startswith(("DepthImage:", "Pinhole:")) or c in _TRANSFORM or c in _META]
+            comps = [c for c in names if c.startswith(("DepthImage:", "EncodedDepthImage:", "Pinhole:"))
+                     or c in _TRANSFORM or c in _META]
             if not comps:
                 continue
             tl = timeline
@@ -85,7 +86,7 @@ def _load(path: Path, timeline: str | None):
                 if tl is None:
                     tl = "frame" if "frame" in ch.timeline_names else next(
                         (t for t in ch.timeline_names if t != "log_time"), None)
-                if "DepthImage:buffer" in names and tl is not None:
+                if ("DepthImage:buffer" in names or "EncodedDepthImage:blob" in names) and tl is not None:
                     depth_timelines.append(tl)
                 if tl is None or tl not in names:
                     continue
@@ -162,7 +163,8 @@ class RrdSource:
         if not self.path.is_file():
             raise ValueError(f"{self.path}: no such recording")
         store, tls = _load(self.path, timeline)
-        depth_entities = sorted(e for e, comps in store.items() if "DepthImage:buffer" in comps)
+        depth_entities = sorted(e for e, comps in store.items()
+                                if "DepthImage:buffer" in comps or "EncodedDepthImage:blob" in comps)
         if entity is not None:
             e = "/" + entity.strip("/")
             if e not in depth_entities:
@@ -178,7 +180,7 @@ class RrdSource:
                        None)
             if pin is None:
                 raise ValueError(f"{self.path}: depth images at {e} are under no Pinhole (no intrinsics)")
-            series = store[e]["DepthImage:buffer"]
+            series = store[e]["DepthImage:buffer" if "DepthImage:buffer" in store[e] else "EncodedDepthImage:blob"]
             for t in series.times:
                 self._items.append((t, e, pin))
         self._items.sort()
@@ -200,8 +202,23 @@ class RrdSource:
     def close(self):
         self._items = []
 
+    def _decode_png(self, e, t):
+        import cv2
+
+        s = self._store
+        blob = _to_numpy(s[e]["EncodedDepthImage:blob"].latest_at(t)).astype(np.uint8)
+        depth = cv2.imdecode(blob, cv2.IMREAD_UNCHANGED)
+        if depth is None or depth.ndim != 2:
+            raise ValueError(f"{self.path}: the encoded depth image at {e}, time {t}, does not decode")
+        m = s[e].get("EncodedDepthImage:meter")
+        meter = float(_to_numpy(m.latest_at(t))[0]) if m is not None and m.latest_at(t) is not None else 1000.0
+        return depth, meter
+
     def _frame(self, k, t, e, pin) -> Frame:
         s = self._store
+        if "EncodedDepthImage:blob" in s[e] and "DepthImage:buffer" not in s[e]:
+            depth, meter = self._decode_png(e, t)
+            return self._finish(k, t, e, pin, depth, meter)
         fmt_v = s[e]["DepthImage:format"].latest_at(t)
         buf_v = s[e]["DepthImage:buffer"].latest_at(t)
         if fmt_v is None:
@@ -219,6 +236,10 @@ class RrdSource:
         meter_v = s[e].get("DepthImage:meter")
         meter = float(_to_numpy(meter_v.latest_at(t))[0]) if meter_v is not None and meter_v.latest_at(t) is not None \
             else 1000.0
+        return self._finish(k, t, e, pin, depth, meter)
+
+    def _finish(self, k, t, e, pin, depth, meter) -> Frame:
+        s = self._store
         camera = e.strip("/").split("/")[-2] if e.strip("/").count("/") >= 1 else e.strip("/")
         meta = s.get(f"/meta/{camera}", {})
         exact = {name: meta[name].latest_at(t) for name in _META if name in meta}
