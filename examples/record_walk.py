@@ -1,0 +1,38 @@
+"""Record a small simulated walk up a staircase as a rerun recording (recordings/stairs_walk.rrd).
+
+    .venv/bin/python examples/record_walk.py [--out recordings/stairs_walk.rrd] [--frames 24]
+
+The recording holds what `elevmap replay` needs (depth under a pinhole, exact poses) plus the map as
+it was built, and stays under 5 MB. Open it with `.venv/bin/rerun recordings/stairs_walk.rrd`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from elevmap.pipeline import MappingConfig, run_mapping
+from elevmap.sources.simulated import SimulatedWalk
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "recordings" / "stairs_walk.rrd"))
+    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing recording")
+    args = parser.parse_args()
+    if os.path.exists(args.out) and not args.overwrite:
+        raise SystemExit(f"{args.out} exists; pass --overwrite to replace it")
+    src = SimulatedWalk("stairs", n_frames=args.frames, seed=args.seed)
+    config = MappingConfig(length_m=6.0, resolution_m=0.04, mesh_every=1000, max_points=800, max_ellipsoids=60)
+    summary = run_mapping(src, config, rrd_path=args.out, total=len(src), application_id="elevmap_stairs_walk",
+                          notes="A simulated D435 (424x240, 10 Hz) walking up six 0.17 m steps, paper noise.")
+    err = summary["error"]
+    print(f"{summary['frames']} frames, median |error| {1000 * err['median_abs_m']:.1f} mm, "
+          f"{os.path.getsize(args.out) / 1e6:.2f} MB -> {args.out}")
+
+
+if __name__ == "__main__":
+    main()
