@@ -49,6 +49,27 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--overwrite", action="store_true", help="replace an existing --rrd/--json file")
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+    p = sub.add_parser("simulate", help="simulate a D435: capture sets on the paper's grid, or a walk",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Simulate a D435 with the reference simulation of the paper's model.\n\n"
+                                   "  elevmap simulate --grid paper [--frames 100] --out DIR\n"
+                                   "      a capture set (d435-captures/1): boards 0.60 x 0.90 m before a wall at 3 m,\n"
+                                   "      0.4 to 2.1 m every 0.1 m by 0 to 75 deg every 15 deg (108 captures)\n"
+                                   "  elevmap simulate --walk SCENE [--frames N] [--drift] --rrd PATH\n"
+                                   "      a robot walking through SCENE (demo, stairs, boxes, slope, rough), mapped\n"
+                                   "      and recorded for `elevmap replay`")
+    p.add_argument("--grid", choices=["paper"], help="capture set on the paper's grid")
+    p.add_argument("--walk", metavar="SCENE", help="a walk through SCENE")
+    p.add_argument("--frames", type=int, default=None, help="frames per capture (100) or of the walk (all)")
+    p.add_argument("--out", metavar="DIR", help="capture-set folder (with --grid)")
+    p.add_argument("--rrd", metavar="PATH", help="recording of the walk (with --walk)")
+    p.add_argument("--kind", choices=["board", "wall"], default="board", help="target of the captures")
+    p.add_argument("--size", default="424x240", help="depth mode WIDTHxHEIGHT (default 424x240)")
+    p.add_argument("--drift", action="store_true", help="odometry drift on the walk's poses")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
     p = sub.add_parser("bench", help="time the numba kernels against their NumPy references",
                        description="Median per-frame time of each compiled kernel after warm-up, next to its "
                                    "NumPy reference measured in the same run.")
@@ -188,7 +209,41 @@ def _cmd_bench(args) -> int:
     return 0
 
 
-COMMANDS = {"demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
+def _cmd_simulate(args) -> int:
+    if (args.grid is None) == (args.walk is None):
+        raise ValueError("give exactly one of --grid paper and --walk SCENE")
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--size must be WIDTHxHEIGHT, got {args.size!r}") from None
+    if args.frames is not None and args.frames < 1:
+        raise ValueError("--frames must be >= 1")
+    if args.grid:
+        from .simulate import simulate_capture_set
+
+        if not args.out:
+            raise ValueError("--grid needs --out DIR")
+        cs = simulate_capture_set(args.out, "paper", n_frames=args.frames or 100, width=width, height=height,
+                                  kind=args.kind, seed=args.seed, overwrite=args.overwrite,
+                                  show_progress=not args.no_progress)
+        print(f"wrote {len(cs.captures)} captures of {args.frames or 100} frames ({width}x{height}) to {args.out}")
+        return 0
+    from .pipeline import MappingConfig, run_mapping
+    from .sources.simulated import SimulatedWalk
+
+    if not args.rrd:
+        raise ValueError("--walk needs --rrd PATH")
+    _check_output(args.rrd, args.overwrite)
+    src = SimulatedWalk(args.walk, n_frames=args.frames, seed=args.seed, width=width, height=height,
+                        drift=args.drift)
+    summary = run_mapping(src, MappingConfig(), rrd_path=args.rrd, total=len(src),
+                          show_progress=not args.no_progress, notes=f"elevmap simulate --walk {args.walk}")
+    _print_summary(summary)
+    print(f"wrote {args.rrd}; replay it with: elevmap replay {args.rrd}")
+    return 0
+
+
+COMMANDS = {"simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
 
 
 def main(argv=None) -> int:
