@@ -42,6 +42,10 @@ class Camera:
         Metres per unit of its uint16 depth (None for float metres).
     min_depth_m, max_depth_m : float
         Valid depth range [m].
+    variance_model : callable, optional
+        Another point-noise model in place of the paper's (for comparisons):
+        ``f(points_cam (N, 3), T_map_cam (4, 4), pose_cov (6, 6) or None) -> (height_var (N,),
+        horizontal_cov (N, 3))`` in the map frame [m^2]. None: the paper's model (numba kernel).
     """
 
     name: str
@@ -53,6 +57,7 @@ class Camera:
     depth_scale: float | None = 0.001
     min_depth_m: float = MIN_DEPTH_M
     max_depth_m: float = MAX_DEPTH_M
+    variance_model: object = None
 
     def __post_init__(self):
         self.K = check_intrinsics(self.K, f"camera {self.name!r} K")
@@ -64,6 +69,8 @@ class Camera:
             self.depth_scale = check_positive_scalar(self.depth_scale, "depth_scale", upper=0.1, unit=" m per unit")
         if not isinstance(self.model, SensorModel):
             raise ValueError(f"camera {self.name!r}: model must be a noise_model.SensorModel")
+        if self.variance_model is not None and not callable(self.variance_model):
+            raise ValueError(f"camera {self.name!r}: variance_model must be callable")
 
 
 class Mapper:
@@ -154,6 +161,16 @@ class Mapper:
                                          nthreads=self.nthreads, **kwargs)
         else:
             pts = nm.depth_to_map_points_reference(d, cam.K, T_map_cam, pose_cov, **kwargs)
+        if cam.variance_model is not None:
+            points_cam = (pts.points_map - T_map_cam[:3, 3]) @ T_map_cam[:3, :3]
+            hvar, hcov = cam.variance_model(points_cam, T_map_cam, pose_cov)
+            hvar = np.asarray(hvar, dtype=np.float64)
+            hcov = np.asarray(hcov, dtype=np.float64)
+            if hvar.shape != (len(points_cam),) or hcov.shape != (len(points_cam), 3):
+                raise ValueError(f"camera {camera!r}: variance_model returned shapes {hvar.shape}, {hcov.shape}")
+            if not (np.all(np.isfinite(hvar)) and np.all(hvar > 0)):
+                raise ValueError(f"camera {camera!r}: variance_model returned non-finite or non-positive variances")
+            pts = nm.MapPoints(pts.points_map, hvar, hcov, pts.pixel)
         t1 = time.perf_counter()
         if stamp is None:
             stamp = float(self.map.frames)
