@@ -59,11 +59,14 @@ __all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "fuse_frame_referenc
 
 _JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
 
+#: Normal quantile of the significance level (1e-4) at which scatter inflates a frame's variance.
+CHI2_Z = 3.719
+
 #: Number of partial grids (fixed, so that the summation order never depends on the thread count).
 PARTIALS = 8
 # accumulator fields per partial grid and cell
-(A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, R_W, R_WZ, R_N, R_ZMIN, R_ZMAX, H_X, H_XY, H_Y) = range(13)
-NACC = 13
+(A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, R_W, R_WZ, R_N, R_ZMIN, R_ZMAX, H_X, H_XY, H_Y, A_WZZ) = range(14)
+NACC = 14
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,12 @@ class FusionParams:
         Rejected points needed (and more than accepted) before a cell is taken to have changed.
     max_points_per_frame : float or None
         The information cap n_eff (None: off).
+    scatter_inflation : bool
+        Divide a frame's information in a cell by the reduced chi-square of its accepted points,
+        chi2 = sum w (z - z_mean)^2 / (n - 1), when it is significant (above its 1 - 1e-4 quantile under
+        the noise model, Wilson-Hilferty approximation): points that scatter more than their
+        stated variances allow (two surfaces in one cell, points bled over an edge, underestimated
+        noise) must not make the cell confident.
     """
 
     mahalanobis_threshold: float = 2.5
@@ -93,6 +102,7 @@ class FusionParams:
     max_horizontal_variance: float = 0.5
     change_min_points: int = 3
     max_points_per_frame: float | None = None
+    scatter_inflation: bool = True
 
     def __post_init__(self):
         for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
@@ -111,11 +121,13 @@ class FusionParams:
             raise ValueError(f"max_points_per_frame must be None or >= 1, got {self.max_points_per_frame!r}")
 
     def array(self, resolution_m: float) -> np.ndarray:
-        """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off)."""
+        """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off),
+        scatter inflation (0/1)."""
         min_h = (resolution_m / 2) ** 2 if self.min_horizontal_variance is None else self.min_horizontal_variance
         return np.array([self.mahalanobis_threshold, self.min_variance, self.max_variance, min_h,
                          self.max_horizontal_variance, float(self.change_min_points),
-                         0.0 if self.max_points_per_frame is None else float(self.max_points_per_frame)])
+                         0.0 if self.max_points_per_frame is None else float(self.max_points_per_frame),
+                         1.0 if self.scatter_inflation else 0.0])
 
 
 class FusionWorkspace:
@@ -133,13 +145,20 @@ class FusionWorkspace:
 # ---------------------------------------------------------------------------------------------
 @njit(**_JIT)
 def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h, stamp,
-                params):
+                params, WZZ):
     """Combine one cell's frame sums with its prior and write the cell (see the module docstring)."""
-    thr, min_var, max_var, min_h, max_h, change_min, cap = (
-        params[0], params[1], params[2], params[3], params[4], params[5], params[6])
+    thr, min_var, max_var, min_h, max_h, change_min, cap, inflate = (
+        params[0], params[1], params[2], params[3], params[4], params[5], params[6], params[7])
     h = data[ELEVATION, bi, bj]
     v = data[VARIANCE, bi, bj]
     known = not np.isnan(h)
+    if inflate > 0.0 and N >= 2.0:
+        chi2 = (WZZ - WZ * WZ / W) / (N - 1.0)
+        k = N - 1.0           # chi2 > its 1 - 1e-4 quantile (Wilson-Hilferty), per degree of freedom
+        q = 1.0 - 2.0 / (9.0 * k) + CHI2_Z * math.sqrt(2.0 / (9.0 * k))
+        if chi2 > q * q * q:
+            W /= chi2
+            WZ /= chi2
     if cap > 0.0 and N > cap:
         s = cap / N
         W *= s
@@ -253,6 +272,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
             else:
                 acc[p, c, A_W] += w
                 acc[p, c, A_WZ] += w * zk
+                acc[p, c, A_WZZ] += w * zk * zk
                 acc[p, c, A_N] += 1.0
                 acc[p, c, A_ZMIN] = min(acc[p, c, A_ZMIN], zk)
                 acc[p, c, A_ZMAX] = max(acc[p, c, A_ZMAX], zk)
@@ -262,7 +282,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
                     acc[p, c, H_Y] += w * hcov[k, 2]
     touched = 0
     for c in prange(n * n):
-        W = WZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = 0.0
+        W = WZ = WZZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = 0.0
         zmin = zminr = inf
         zmax = zmaxr = -inf
         seen = False
@@ -271,6 +291,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
                 seen = True
                 W += acc[p, c, A_W]
                 WZ += acc[p, c, A_WZ]
+                WZZ += acc[p, c, A_WZZ]
                 Nn += acc[p, c, A_N]
                 zmin = min(zmin, acc[p, c, A_ZMIN])
                 zmax = max(zmax, acc[p, c, A_ZMAX])
@@ -290,7 +311,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
             Hxy /= W
             Hy /= W
         _merge_cell(data, c // n, c % n, W, WZ, Nn, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h,
-                    stamp, params)
+                    stamp, params, WZZ)
     return touched
 
 
@@ -334,7 +355,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     g = geometry
     n = g.n
     p = params.array(g.resolution_m)
-    thr, min_var, max_var, min_h, max_h, change_min, cap = p
+    thr, min_var, max_var, min_h, max_h, change_min, cap, inflate = p
     x, y, z = points_map[:, 0], points_map[:, 1], points_map[:, 2]
     c, inside = _cells(n, g.gx0, g.gy0, g.resolution_m, x, y)
     z, var = z[inside], height_var[inside]
@@ -355,6 +376,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         return out
 
     W, WZ, N = bc(acc, w), bc(acc, w * z), bc(acc)
+    WZZ = bc(acc, w * z * z)
     Wr, WZr, Nr = bc(rej, w), bc(rej, w * z), bc(rej)
     zmin, zmax = extreme(acc, np.minimum, np.inf), extreme(acc, np.maximum, -np.inf)
     zminr, zmaxr = extreme(rej, np.minimum, np.inf), extreme(rej, np.maximum, -np.inf)
@@ -362,6 +384,12 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     with np.errstate(invalid="ignore", divide="ignore"):
         if hc is not None:
             Hx, Hxy, Hy = (bc(acc, w * hc[:, k]) / W for k in range(3))
+        if inflate > 0:
+            k = np.maximum(N - 1, 1)
+            chi2 = np.where(N >= 2, (WZZ - WZ * WZ / W) / k, 0.0)
+            q = (1.0 - 2.0 / (9.0 * k) + CHI2_Z * np.sqrt(2.0 / (9.0 * k))) ** 3
+            f = np.where(chi2 > q, chi2, 1.0)
+            W, WZ = W / f, WZ / f
         if cap > 0:
             s = np.where(N > cap, cap / np.maximum(N, 1), 1.0)
             W, WZ = W * s, WZ * s

@@ -278,3 +278,20 @@ def test_fuzz_all_public_entries_keep_the_map_valid(tmp_path, seed, ops):
     m.save(path)
     back = ElevationMap.load(path)
     np.testing.assert_array_equal(back.data, m.data)
+
+
+def test_points_that_scatter_beyond_their_noise_do_not_make_a_cell_confident(rng):
+    # one cell holding two surfaces 10 cm apart (a step inside the cell), points claiming 5 mm noise
+    z = np.concatenate([rng.normal(0.0, 0.005, 50), rng.normal(0.1, 0.005, 50)])
+    pts = np.column_stack([np.full(100, 0.5), np.full(100, 0.5), z])
+    var = np.full(100, 0.005 ** 2)
+    inflated, plain = small_map(), small_map(fusion_params=FusionParams(scatter_inflation=False))
+    inflated.update(pts, var)
+    plain.update(pts, var)
+    assert plain.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)
+    chi2 = np.sum((z - z.mean()) ** 2) / 0.005 ** 2 / 99                   # ~100: the points disagree
+    assert inflated.layer("variance")[1, 1] == pytest.approx(chi2 * 0.005 ** 2 / 100, rel=1e-9)
+    # points that agree with their noise are not inflated
+    ok = small_map()
+    ok.update(np.column_stack([np.full(100, 0.5), np.full(100, 0.5), rng.normal(0, 0.005, 100)]), var)
+    assert ok.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)

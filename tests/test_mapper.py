@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import noise_model as nm
-from elevmap import Camera, ElevationMap, Mapper
+from elevmap import Camera, ElevationMap, FusionParams, Mapper
 from noise_model.sim import camera_extrinsics
 
 W, H = 424, 240
@@ -75,8 +75,9 @@ def test_numba_and_numpy_mappers_agree(rng):
 def test_pose_uncertainty_makes_the_map_less_confident(rng):
     T = camera_extrinsics((0.0, 0.0, 0.45), 30.0)
     d = floor_depth(T, rng)
-    sure = Mapper(ElevationMap(4.0, 0.04), [Camera("c", K, W, H)])
-    unsure = Mapper(ElevationMap(4.0, 0.04), [Camera("c", K, W, H)])
+    plain = FusionParams(scatter_inflation=False)          # isolate the pose term
+    sure = Mapper(ElevationMap(4.0, 0.04, fusion_params=plain), [Camera("c", K, W, H)])
+    unsure = Mapper(ElevationMap(4.0, 0.04, fusion_params=plain), [Camera("c", K, W, H)])
     sure.integrate("c", d, T_map_cam=T)
     unsure.integrate("c", d, T_map_cam=T, pose_cov=np.diag([0.0, 0.0, 1e-4, 1e-4, 1e-4, 0.0]))
     k = sure.map.is_known() & unsure.map.is_known()
