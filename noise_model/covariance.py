@@ -70,7 +70,7 @@ def pose_jacobian(points_cam, T_map_cam) -> np.ndarray:
 
 
 def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx: float | None = None,
-                      fy: float | None = None, model: SensorModel = D435) -> np.ndarray:
+                      fy: float | None = None, model: SensorModel = D435, z_noise=None) -> np.ndarray:
     """Camera-frame covariance of each point under the D435 noise model.
 
     Parameters
@@ -86,6 +86,9 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
         Focal lengths [px] for the interior lateral term; the D435's 848x480 default (424 px).
     model : SensorModel
         Noise coefficients (the paper's by default).
+    z_noise : array_like, shape (N,), optional
+        Depth [m] at which sigma_z is evaluated (default: the points' own z). Pass a denoised depth
+        (:func:`noise_model.plane_depths`) so that a point's weight does not depend on its own noise.
 
     Returns
     -------
@@ -104,7 +107,12 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
     fy = check_positive_scalar(f_default if fy is None else fy, "fy", upper=1e5, unit=" px")
     z = p[:, 2]
     r = p / z[:, None]
-    sz = _axial_sigma_unchecked(z, th, model)
+    zs = z
+    if z_noise is not None:
+        zs = np.asarray(z_noise, dtype=np.float64)
+        if zs.shape != (n,) or not np.all(np.isfinite(zs)) or (n and float(zs.min()) <= 0):
+            raise ValueError(f"z_noise must be ({n},) finite depths > 0 [m]")
+    sz = _axial_sigma_unchecked(zs, th, model)
     cov = (sz * sz)[:, None, None] * (r[:, :, None] * r[:, None, :])
     var_x = z * z * (PIXEL_VARIANCE_PX2 / (fx * fx))
     var_y = z * z * (PIXEL_VARIANCE_PX2 / (fy * fy))

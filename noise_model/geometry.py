@@ -20,6 +20,7 @@ __all__ = [
     "incidence_angles",
     "depth_edges",
     "default_block_px",
+    "plane_depths",
     "EDGE_JUMP_REL",
     "EDGE_JUMP_SIGMAS",
     "NORMAL_MIN_POINTS",
@@ -161,6 +162,12 @@ WINDOW_RADIUS_BLOCKS = 2
 
 def _block_theta_numpy(p, valid, b, min_points):
     """Per-block theta [rad] from inverse-depth plane fits over 5 x 5-block windows (NumPy reference)."""
+    return _block_planes_numpy(p, valid, b, min_points)[0]
+
+
+def _block_planes_numpy(p, valid, b, min_points):
+    """Per-block (theta, alpha, beta, gamma, ok) of the inverse-depth plane fit 1/z = alpha u' + beta v' + gamma
+    over the 5 x 5 blocks around each block (NumPy reference of the numba kernel)."""
     H, W = valid.shape
     nby, nbx = -(-H // b), -(-W // b)
     vv, uu = np.nonzero(valid)
@@ -174,11 +181,16 @@ def _block_theta_numpy(p, valid, b, min_points):
     padded = np.zeros((nby + 2 * r, nbx + 2 * r, 9))
     padded[r:-r, r:-r] = M
     S = sum(padded[i:i + nby, j:j + nbx] for i in range(2 * r + 1) for j in range(2 * r + 1))
-    return _theta_from_inverse_depth_moments(S, min_points)
+    return _planes_from_inverse_depth_moments(S, min_points)
 
 
 def _theta_from_inverse_depth_moments(S, min_points):
     """theta [rad] from summed moments (n, su, sv, sw, suu, suv, svv, suw, svw), any leading shape."""
+    return _planes_from_inverse_depth_moments(S, min_points)[0]
+
+
+def _planes_from_inverse_depth_moments(S, min_points):
+    """(theta, alpha, beta, gamma, ok) of the least-squares plane w = alpha u' + beta v' + gamma."""
     n = S[..., 0]
     ok = n >= max(min_points, 3)
     nn = np.where(ok, n, 1.0)
@@ -194,8 +206,39 @@ def _theta_from_inverse_depth_moments(S, min_points):
     alpha = (cvv * cuw - cuv * cvw) / det
     beta = (cuu * cvw - cuv * cuw) / det
     gamma = mw - alpha * mu - beta * mv
-    theta = np.arctan2(np.hypot(alpha, beta), np.abs(gamma))
-    return np.where(ok, theta, 0.0)
+    theta = np.where(ok, np.arctan2(np.hypot(alpha, beta), np.abs(gamma)), 0.0)
+    return theta, alpha, beta, gamma, ok
+
+
+def plane_depths(points_cam, block_px: int | None = None, min_points: int = NORMAL_MIN_POINTS) -> np.ndarray:
+    """Denoised depth [m] per pixel: the local plane of :func:`incidence_angles` evaluated at the pixel.
+
+    z_fit = 1 / (alpha u' + beta v' + gamma) with the block's inverse-depth plane fit. Noise model
+    variances are evaluated at this depth rather than at the pixel's own noisy depth: a weight
+    computed from the noisy depth is correlated with the noise (a pixel measured too near gets a
+    smaller sigma, a larger weight, and, on a surface seen from above, a height too high), which biases
+    an inverse-variance weighted mean.
+
+    Returns
+    -------
+    ndarray, shape (H, W) [m]
+        NaN where the pixel is invalid or its block has no plane (too few points, degenerate) or the
+        plane does not put the pixel in front of the camera.
+    """
+    p, valid = _valid_points(points_cam)
+    H, W = valid.shape
+    b = default_block_px(W) if block_px is None else int(block_px)
+    if b < 1:
+        raise ValueError(f"block_px must be >= 1, got {block_px}")
+    _, alpha, beta, gamma, ok = _block_planes_numpy(p, valid, b, int(min_points))
+    def spread(a):
+        return np.repeat(np.repeat(a, b, axis=0), b, axis=1)[:H, :W]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        up = p[..., 0] / p[..., 2]
+        vp = p[..., 1] / p[..., 2]
+        w = spread(alpha) * up + spread(beta) * vp + spread(gamma)
+        z_fit = np.where(valid & spread(ok) & (w > 0), 1.0 / w, np.nan)
+    return z_fit
 
 
 #: A window whose pixel-coordinate covariance has a determinant below this fraction of its squared

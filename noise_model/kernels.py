@@ -34,13 +34,18 @@ from .geometry import (
     depth_edges,
     depth_to_metres,
     incidence_angles,
+    plane_depths,
 )
+from .d435 import _axial_sigma_unchecked
 
 __all__ = ["MapPoints", "Workspace", "depth_to_map_points", "depth_to_map_points_reference", "FASTMATH", "resolve_threads"]
 
 #: numba fastmath flags: no nnan/ninf (isnan must work), no arcp (exact division for binning).
 FASTMATH = {"nsz", "contract", "afn", "reassoc"}
 _JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
+
+#: sigma_z is evaluated at the local plane's depth when the pixel lies within this many sigma of it.
+NOISE_DEPTH_SIGMAS = 3.0
 
 #: Default valid depth range [m]: the D435's minimum range at 848x480 is ~0.2 m; 10 m is the
 #: datasheet's upper figure (sigma_z there is ~0.4 m).
@@ -101,12 +106,12 @@ def resolve_threads(nthreads) -> int:
 # numba kernels
 # ---------------------------------------------------------------------------------------------
 @njit(**_JIT)
-def _theta_from_inverse_depth_moments(S, min_points, degenerate_rel):
-    """theta [rad] of the inverse-depth plane fit of summed moments
-    S = (n, su, sv, sw, suu, suv, svv, suw, svw); see :func:`noise_model.incidence_angles`."""
+def _plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
+    """(theta [rad], alpha, beta, gamma, ok) of the inverse-depth plane fit w = alpha u' + beta v' + gamma
+    of summed moments S = (n, su, sv, sw, suu, suv, svv, suw, svw); see :func:`noise_model.incidence_angles`."""
     n = S[0]
     if n < max(min_points, 3):
-        return 0.0
+        return 0.0, 0.0, 0.0, 0.0, False
     mu, mv, mw = S[1] / n, S[2] / n, S[3] / n
     cuu = S[4] / n - mu * mu
     cuv = S[5] / n - mu * mv
@@ -115,11 +120,11 @@ def _theta_from_inverse_depth_moments(S, min_points, degenerate_rel):
     cvw = S[8] / n - mv * mw
     det = cuu * cvv - cuv * cuv
     if not det > degenerate_rel * (cuu + cvv) * (cuu + cvv):    # pixels on one image line
-        return 0.0
+        return 0.0, 0.0, 0.0, 0.0, False
     alpha = (cvv * cuw - cuv * cvw) / det
     beta = (cuu * cvw - cuv * cuw) / det
     gamma = mw - alpha * mu - beta * mv
-    return math.atan2(math.hypot(alpha, beta), abs(gamma))
+    return math.atan2(math.hypot(alpha, beta), abs(gamma)), alpha, beta, gamma, True
 
 
 @njit(parallel=True, **_JIT)
@@ -138,7 +143,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     c0, c1, c2, ct, theta_max, s_left, s_right = (
         params[0], params[1], params[2], params[3], params[4], params[5], params[6])
-    jump_rel, jump_sig = edge_params[0], edge_params[1]
+    jump_rel, jump_sig, noise_sigmas = edge_params[0], edge_params[1], edge_params[2]
     zmin, zmax = zrange[0], zrange[1]
     b = block
     nby = (H + b - 1) // b
@@ -210,6 +215,11 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     # theta term c_theta theta / (pi/2 - theta)^2, spread over the block's pixel columns. The window
     # sum is separable: over the block rows first (Vs), then over the block columns.
     gain_px = np.empty((nby, W))
+    # the block's plane w = alpha u' + beta v' + gamma per pixel column (gamma NaN: no plane), for the
+    # denoised depth at which sigma_z is evaluated
+    alpha_px = np.empty((nby, W))
+    beta_px = np.empty((nby, W))
+    gamma_px = np.empty((nby, W))
     for by in prange(nby):
         Vs = np.zeros((nbx, 9))
         for i in range(max(0, by - radius), min(nby, by + radius + 1)):
@@ -219,15 +229,23 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
         S = np.empty(9)
         for bx in range(nbx):
             g = 0.0
+            pa = pb = 0.0
+            pg = np.nan
             if M[by, bx, 0] > 0.0:      # a block without valid pixels needs no gain
                 S[:] = 0.0
                 for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
                     for c in range(9):
                         S[c] += Vs[j, c]
-                t = min(_theta_from_inverse_depth_moments(S, min_points, degenerate_rel), theta_max)
+                t, pa, pb, pg, ok = _plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
+                if not ok:
+                    pg = np.nan
+                t = min(t, theta_max)
                 g = ct * t / ((0.5 * math.pi - t) * (0.5 * math.pi - t))
             for u in range(bx * b, min(W, bx * b + b)):
                 gain_px[by, u] = g
+                alpha_px[by, u] = pa
+                beta_px[by, u] = pb
+                gamma_px[by, u] = pg
 
     # output offsets (exclusive prefix sum of the row counts)
     offsets = np.empty(H + 1, dtype=np.int64)
@@ -312,7 +330,14 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 var_x = cvx[j]
                 zz = z * z
                 var_y = zz * pix_var_y
-                sig = c0 + c1 * z + c2 * zz + gain_px[by, u] * z * math.sqrt(z)
+                # sigma_z at the local plane's depth when the pixel lies within 3 sigma of it (a
+                # weight must not depend on the pixel's own noise), else at its own depth
+                g = gain_px[by, u]
+                wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
+                zf = 1.0 / wf if wf > 0.0 else 1.0
+                sf = c0 + c1 * zf + c2 * zf * zf + g * zf * math.sqrt(zf)
+                zs = zf if (wf > 0.0) and (abs(z - zf) <= noise_sigmas * sf) else z
+                sig = c0 + c1 * zs + c2 * zs * zs + g * zs * math.sqrt(zs)
                 s2 = sig * sig
                 ru = up[u]
                 a0 = R00 * ru + b0
@@ -409,7 +434,7 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     if not isinstance(ws, Workspace) or ws.shape != d.shape:
         raise ValueError(f"workspace must be a Workspace of the depth image's size {d.shape}")
     intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
-    edge = np.array([EDGE_JUMP_REL, EDGE_JUMP_SIGMAS])
+    edge = np.array([EDGE_JUMP_REL, EDGE_JUMP_SIGMAS, NOISE_DEPTH_SIGMAS])
     previous = numba.get_num_threads()
     numba.set_num_threads(n)
     try:
@@ -439,12 +464,19 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     z = depth_to_metres(d, None if d.dtype != np.uint16 else scale, zmin, zmax)
     pts = deproject(z, K)
     theta = incidence_angles(pts, block_px=b)
+    z_fit = plane_depths(pts, block_px=b)
+    # sigma_z at the denoised depth where the local plane describes the pixel (within 3 sigma), else
+    # at the pixel's own depth (edges, where the window holds two surfaces)
+    with np.errstate(invalid="ignore"):
+        s_fit = _axial_sigma_unchecked(np.where(np.isfinite(z_fit), z_fit, 1.0), np.nan_to_num(theta), model)
+        use_fit = np.isfinite(z_fit) & (np.abs(z - z_fit) <= NOISE_DEPTH_SIGMAS * s_fit)
+    z_noise = np.where(use_fit, z_fit, z)
     left, right = depth_edges(z, model=model, theta=theta)
     valid = np.isfinite(z)
     pix = np.flatnonzero(valid.ravel())
     p = pts.reshape(-1, 3)[pix]
     cov = point_covariances(p, theta.ravel()[pix], left.ravel()[pix], right.ravel()[pix], fx=K[0, 0],
-                            fy=K[1, 1], model=model)
+                            fy=K[1, 1], model=model, z_noise=z_noise.ravel()[pix])
     cov_map = to_map_frame(cov, p, T, P)
     points_map = p @ T[:3, :3].T + T[:3, 3]
     hcov = np.stack([cov_map[:, 0, 0], cov_map[:, 0, 1], cov_map[:, 1, 1]], axis=1)
