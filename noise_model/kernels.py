@@ -334,9 +334,11 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 # weight must not depend on the pixel's own noise), else at its own depth
                 g = gain_px[by, u]
                 wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
-                zf = 1.0 / wf if wf > 0.0 else 1.0
-                sf = c0 + c1 * zf + c2 * zf * zf + g * zf * math.sqrt(zf)
-                zs = zf if (wf > 0.0) and (abs(z - zf) <= noise_sigmas * sf) else z
+                zf = 1.0 / wf if wf > 0.0 else z
+                zf = zf if (zf >= zmin) & (zf <= zmax) else z
+                sf = min(c0 + c1 * zf + c2 * zf * zf + g * zf * math.sqrt(zf),
+                         c0 + c1 * z + c2 * zz + g * z * math.sqrt(z))
+                zs = zf if abs(z - zf) <= noise_sigmas * sf else z
                 sig = c0 + c1 * zs + c2 * zs * zs + g * zs * math.sqrt(zs)
                 s2 = sig * sig
                 ru = up[u]
@@ -465,12 +467,17 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     pts = deproject(z, K)
     theta = incidence_angles(pts, block_px=b)
     z_fit = plane_depths(pts, block_px=b)
-    # sigma_z at the denoised depth where the local plane describes the pixel (within 3 sigma), else
-    # at the pixel's own depth (edges, where the window holds two surfaces)
+    # sigma_z at the denoised depth where the local plane describes the pixel (within 3 of the smaller
+    # of the two sigmas, and inside the valid range), else at the pixel's own depth (edges, where the
+    # window holds two surfaces; planes seen edge-on, whose depth runs away)
     with np.errstate(invalid="ignore"):
-        s_fit = _axial_sigma_unchecked(np.where(np.isfinite(z_fit), z_fit, 1.0), np.nan_to_num(theta), model)
-        use_fit = np.isfinite(z_fit) & (np.abs(z - z_fit) <= NOISE_DEPTH_SIGMAS * s_fit)
-    z_noise = np.where(use_fit, z_fit, z)
+        zf = np.where(np.isfinite(z_fit) & (z_fit >= zmin) & (z_fit <= zmax), z_fit, z)
+        th = np.nan_to_num(theta)
+        zz = np.where(np.isfinite(z), z, 1.0)
+        s = np.minimum(_axial_sigma_unchecked(np.where(np.isfinite(zf), zf, 1.0), th, model),
+                       _axial_sigma_unchecked(zz, th, model))
+        use_fit = np.isfinite(zf) & (np.abs(z - zf) <= NOISE_DEPTH_SIGMAS * s)
+    z_noise = np.where(use_fit, zf, z)
     left, right = depth_edges(z, model=model, theta=theta)
     valid = np.isfinite(z)
     pix = np.flatnonzero(valid.ravel())

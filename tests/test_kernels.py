@@ -171,3 +171,18 @@ def test_fuzz_never_nan_and_always_equal_to_reference(h, w, seed, data):
     assert_same(a, b)
     assert not any(np.isnan(x).any() for x in a[:3])
     assert np.all(a.height_var >= 0)
+
+
+def test_noise_depth_never_runs_away_on_planes_seen_edge_on():
+    # a wall seen almost edge-on: its local plane fit extrapolates to absurd depths; variances stay sane
+    from noise_model.sim import render_planar_target
+
+    K = D435.intrinsics(424, 240)
+    z, _ = render_planar_target(K, 424, 240, 2.0, 80.0)
+    z = z + np.random.default_rng(0).normal(0, 0.02, z.shape)
+    z[~((z > 0.3) & (z < 9.0))] = np.nan
+    a = depth_to_map_points(z, K, np.eye(4))
+    b = depth_to_map_points_reference(z, K, np.eye(4))
+    assert_same(a, b)
+    from noise_model import axial_sigma
+    assert a.height_var.max() <= axial_sigma(9.0, np.radians(80)) ** 2 * 1.0001
