@@ -70,6 +70,34 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+    p = sub.add_parser("compare", help="one simulated walk through several mappers: error and calibration",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Render one simulated walk (the paper's reference noise plus optional effects)\n"
+                                   "and feed the same frames to several mappers; score each final map against the\n"
+                                   "true terrain (RMSE, 95th percentile, NLL, 1/2-sigma coverage, mean sigma, step\n"
+                                   "edges and flat ground, known cells, time per frame).\n\n"
+                                   "mappers: paper (the paper's model, full covariance propagation), constant\n"
+                                   "  (2 cm), quadratic (elevation_mapping_cupy: 0.05 z^2), anybotics_d435\n"
+                                   "  (ANYbotics' D435 preset), paper_capped (the paper's model with the per-frame\n"
+                                   "  information cap --cap)\n"
+                                   "sim effects (noise_model.effects), NAME[:KEY=VALUE[:KEY=VALUE]] comma-separated:\n"
+                                   "  correlated_noise  sigma_z_fraction=1.0 (or sigma_m=...), length_px=3\n"
+                                   "  depth_bias        scale=0.99, offset_px=0.05, baseline_m=0.05\n"
+                                   "e.g. --sim-effects correlated_noise:length_px=5,depth_bias")
+    p.add_argument("--scene", default="stairs", help="stairs, boxes, slope, rough or demo (default: stairs)")
+    p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
+    p.add_argument("--sim-effects", default=None, metavar="NAMES", help="effects added to the simulated depth")
+    p.add_argument("--mappers", default=None, metavar="NAMES",
+                   help="comma-separated subset of paper, constant, quadratic, anybotics_d435, paper_capped")
+    p.add_argument("--cap", type=float, default=None, metavar="N_EFF",
+                   help="information cap of paper_capped, points per cell and frame (default: 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the scene, noise and effects (default: 0)")
+    p.add_argument("--size", default="424x240", help="depth mode WIDTHxHEIGHT (default 424x240)")
+    p.add_argument("--json", metavar="PATH", help="the report (required)")
+    p.add_argument("--rrd", metavar="PATH", help="rerun recording: the maps side by side, error maps")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
     p = sub.add_parser("bench", help="time the numba kernels against their NumPy references",
                        description="Median per-frame time of each compiled kernel after warm-up, next to its "
                                    "NumPy reference measured in the same run.")
@@ -243,7 +271,35 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
-COMMANDS = {"simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
+def _cmd_compare(args) -> int:
+    from pathlib import Path
+
+    from .compare import DEFAULT_CAP, format_table, json_ready, run_compare
+    from .fileio import write_json_atomic
+
+    if not args.json:
+        raise ValueError("--json PATH is required (the report)")
+    if args.rrd and Path(args.rrd).resolve() == Path(args.json).resolve():
+        raise ValueError("--json and --rrd must be different files")
+    _check_output(args.json, args.overwrite)
+    _check_output(args.rrd, args.overwrite)
+    if args.frames is not None and args.frames < 1:
+        raise ValueError("--frames must be >= 1")
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--size must be WIDTHxHEIGHT, got {args.size!r}") from None
+    report = run_compare(args.scene, args.frames, seed=args.seed, sim_effects=args.sim_effects,
+                         mappers=args.mappers, cap=DEFAULT_CAP if args.cap is None else args.cap, width=width,
+                         height=height, rrd_path=args.rrd, show_progress=not args.no_progress)
+    report = json_ready(report)
+    write_json_atomic(args.json, report)
+    print(format_table(report))
+    print(f"wrote {args.json}" + (f" and {args.rrd}; open it with: .venv/bin/rerun {args.rrd}" if args.rrd else ""))
+    return 0
+
+
+COMMANDS = {"compare": _cmd_compare, "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
 
 
 def main(argv=None) -> int:

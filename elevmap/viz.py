@@ -59,6 +59,9 @@ __all__ = [
     "PLOT_CANVAS",
     "PLOT_VISUAL_BOUNDS",
     "SERIES_COLORS",
+    "log_rgb_image",
+    "map_image",
+    "compare_blueprint",
 ]
 
 
@@ -834,3 +837,73 @@ def log_depth_png(rec: rr.RecordingStream, entity: str, depth_u16, meter: float,
         raise ValueError("PNG encoding of the depth image failed")
     rec.log(entity, rr.EncodedDepthImage(blob=png.tobytes(), media_type="image/png", meter=float(meter)),
             static=static)
+
+
+# ---------------------------------------------------------------------------------------------
+# Comparisons (elevmap compare)
+# ---------------------------------------------------------------------------------------------
+def log_rgb_image(rec: rr.RecordingStream, entity: str, rgb, static: bool = False) -> None:
+    """Log an RGB image (H, W, 3) uint8, e.g. a map layer coloured with :func:`colormap`."""
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3 or a.dtype != np.uint8:
+        raise ValueError(f"rgb must be an (H, W, 3) uint8 image, got {a.dtype} {a.shape}")
+    rec.log(entity, rr.Image(np.ascontiguousarray(a), color_model="RGB"), static=static)
+
+
+def map_image(layer) -> np.ndarray:
+    """A map layer in map-index order (i along +x, j along +y) as an image seen from above with +x up
+    and +y to the left: ``layer[::-1, ::-1]`` (row 0 = largest x, column 0 = largest y)."""
+    a = np.asarray(layer)
+    if a.ndim < 2:
+        raise ValueError(f"layer must be at least 2-D, got shape {a.shape}")
+    return a[::-1, ::-1]
+
+
+def compare_blueprint(map_views: Sequence[str], image_grids: Sequence[tuple[str, Sequence[str]]] = (),
+                      time_series_entities: Sequence[str] = (), text_entities: Sequence[str] = (),
+                      depth_entities: Sequence[str] = (), timeline: str | None = None,
+                      hidden_entities: Sequence[str] = (), eye_position=None, eye_look_target=None) -> rrb.Blueprint:
+    """Layout of a comparison: one 3-D view per map side by side, image grids in tabs, notes and plots.
+
+    Parameters
+    ----------
+    map_views : sequence of str
+        Roots of the 3-D views (one per mapper, e.g. ``maps/paper``), in a grid; each is z-up.
+    image_grids : sequence of (str, sequence of str)
+        Tabs of 2-D views: a tab name and the image entities shown in a grid in that tab.
+    time_series_entities : sequence of str
+        Subtrees of scalars (:func:`log_scalar`), one time-series view each.
+    text_entities : sequence of str
+        Markdown notes (:func:`log_text`).
+    depth_entities : sequence of str
+        Pinhole entities with depth images, one 2-D view each.
+    timeline : str, optional
+        Timeline selected in the time panel.
+    hidden_entities : sequence of str
+        Entities hidden at start in the 3-D views.
+    eye_position, eye_look_target : array_like, shape (3,), optional
+        The same initial eye for every 3-D view [m].
+    """
+    eye = None
+    if eye_position is not None and eye_look_target is not None:
+        eye = rrb.EyeControls3D(position=np.asarray(eye_position, dtype=np.float64),
+                                look_target=np.asarray(eye_look_target, dtype=np.float64), eye_up=[0.0, 0.0, 1.0])
+    views3d = []
+    for origin in map_views:
+        hidden = {e: rrb.EntityBehavior(visible=False) for e in hidden_entities if e.startswith(origin + "/")}
+        views3d.append(rrb.Spatial3DView(origin=origin, name=origin.rsplit("/", 1)[-1], eye_controls=eye,
+                                         overrides=hidden or None))
+    cols = 3 if len(views3d) > 4 else 2
+    tabs = [rrb.Grid(*views3d, grid_columns=cols, name="maps")] if views3d else []
+    for name, entities in image_grids:
+        views = [rrb.Spatial2DView(origin=e, name=e.rsplit("/", 1)[-1]) for e in entities]
+        if views:
+            tabs.append(rrb.Grid(*views, grid_columns=3 if len(views) > 4 else 2, name=name))
+    left = rrb.Tabs(*tabs, active_tab=0) if len(tabs) > 1 else tabs[0]
+    right = [rrb.TextDocumentView(origin=e, name=e.rsplit("/", 1)[-1]) for e in text_entities]
+    right += [rrb.Spatial2DView(origin=e, name=e.strip("/").split("/")[-2] if "/" in e.strip("/") else e)
+              for e in depth_entities]
+    right += [rrb.TimeSeriesView(origin=e, name=e.rsplit("/", 1)[-1]) for e in time_series_entities]
+    parts = [rrb.Horizontal(left, rrb.Vertical(*right), column_shares=[3, 2]) if right else left]
+    parts.append(rrb.TimePanel(state="collapsed", timeline=timeline))
+    return rrb.Blueprint(*parts, collapse_panels=False)

@@ -12,6 +12,9 @@ to_map_frame                            (N, 3, 3) map-frame covariances with pos
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
 Scene, render_depth, add_noise          scenes of primitives, numba ray casting, the reference noise
 walk, odometry_drift, simulate_walk     trajectories, odometry drift, simulated walks (noise_model.scene)
+alternatives                            other point-noise models for comparisons: constant, quadratic
+                                        (elevation_mapping_cupy), anybotics_d435 (ANYbotics' D435 preset)
+effects, correlated_noise, depth_bias   depth effects for the simulator's effects hook (EFFECTS by name)
 
 This package never imports ``elevmap``, rerun, pyrealsense2 or OpenCV.
 """
@@ -27,7 +30,8 @@ from .checks import (
 )
 from .covariance import point_covariances, pose_jacobian, skew, to_map_frame
 from .d435 import D435, THETA_MAX_DEFAULT, SensorModel, axial_sigma, expected_rms_error
-from . import kernels, scene, sim
+from . import alternatives, effects, kernels, scene, sim
+from .effects import EFFECTS, correlated_noise, depth_bias
 from .geometry import deproject, depth_edges, depth_to_metres, default_block_px, incidence_angles
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 from .scene import (
@@ -83,4 +87,9 @@ __all__ = [
     "walk",
     "odometry_drift",
     "simulate_walk",
+    "alternatives",
+    "effects",
+    "EFFECTS",
+    "correlated_noise",
+    "depth_bias",
 ]
