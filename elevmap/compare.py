@@ -638,7 +638,7 @@ class _CompareLogger:
         first = next(iter(maps.values()))
         xs, ys = first.cell_centres()
         tr = _truth_grid(first, truth)
-        lo, hi = _span(tr)
+        lo, hi = viz.robust_range(tr)
         viz.log_height_mesh(rec, "maps/truth/elevation", xs, ys, tr, viz.colormap(tr, lo, hi))
         viz.log_trail(rec, "maps/truth/trail", self.trail)
         e = ERROR_COLOR_RANGE_M
@@ -675,12 +675,3 @@ class _CompareLogger:
 
     def close(self):
         self.recording.__exit__(None, None, None)
-
-
-def _span(values) -> tuple[float, float]:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return 0.0, 1.0
-    lo, hi = np.percentile(v, [2, 98])
-    return float(lo), float(max(hi, lo + 1e-3))

@@ -274,7 +274,7 @@ class _Logger:
         if pts is not None and len(pts.pixel):
             k = np.linspace(0, len(pts.pixel) - 1, min(self.config.max_points, len(pts.pixel))).astype(np.int64)
             p = np.asarray(pts.points_map)[k]
-            viz.log_points(rec, "world/points", p, colors=viz.colormap(p[:, 2], *_span(p[:, 2])), radii=0.005)
+            viz.log_points(rec, "world/points", p, colors=viz.colormap(p[:, 2], *viz.robust_range(p[:, 2])), radii=0.005)
             k = k[:: max(1, len(k) // self.config.max_ellipsoids)]
             hc = np.asarray(pts.horizontal_cov)[k]
             cov = np.zeros((len(k), 3, 3))
@@ -298,7 +298,7 @@ class _Logger:
         xs, ys = emap.cell_centres()
         h = emap.layer("elevation")
         sigma = np.sqrt(emap.layer("variance"))
-        viz.log_height_mesh(self.rec, "world/map/elevation", xs, ys, h, viz.colormap(h, *_span(h)))
+        viz.log_height_mesh(self.rec, "world/map/elevation", xs, ys, h, viz.colormap(h, *viz.robust_range(h)))
         viz.log_height_mesh(self.rec, "world/map/sigma", xs, ys, h, viz.colormap(sigma, 0.001, 0.1, log=True))
 
     def final(self, emap, error):
@@ -312,12 +312,3 @@ class _Logger:
             time_series_entities=["plots"], world="world", timeline="frame",
             hidden_entities=["world/map/sigma", "world/points_cov"])
         self.rec.send_blueprint(bp)
-
-
-def _span(values) -> tuple[float, float]:
-    v = np.asarray(values, dtype=np.float64)
-    v = v[np.isfinite(v)]
-    if not v.size:
-        return 0.0, 1.0
-    lo, hi = np.percentile(v, [2, 98])
-    return float(lo), float(max(hi, lo + 1e-3))

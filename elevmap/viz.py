@@ -56,6 +56,7 @@ __all__ = [
     "log_trail",
     "log_exact",
     "log_depth_png",
+    "robust_range",
     "PLOT_CANVAS",
     "PLOT_VISUAL_BOUNDS",
     "SERIES_COLORS",
@@ -907,3 +908,13 @@ def compare_blueprint(map_views: Sequence[str], image_grids: Sequence[tuple[str,
     parts = [rrb.Horizontal(left, rrb.Vertical(*right), column_shares=[3, 2]) if right else left]
     parts.append(rrb.TimePanel(state="collapsed", timeline=timeline))
     return rrb.Blueprint(*parts, collapse_panels=False)
+
+
+def robust_range(values) -> tuple[float, float]:
+    """(2nd, 98th) percentile of the finite values, for colour scales; (0, 1) when there are none."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return 0.0, 1.0
+    lo, hi = np.percentile(v, [2, 98])
+    return float(lo), float(max(hi, lo + 1e-3))

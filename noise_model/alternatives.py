@@ -291,12 +291,6 @@ def make_variance_model(name: str, **params) -> VarianceModel:
     ValueError
         Unknown name or parameter, or a bad value.
     """
-    if name not in VARIANCE_MODELS:
-        raise ValueError(f"unknown variance model {name!r}; known: {', '.join(VARIANCE_MODELS)}")
-    import inspect
+    from .checks import build_from_registry
 
-    allowed = set(inspect.signature(VARIANCE_MODELS[name]).parameters)
-    bad = set(params) - allowed
-    if bad:
-        raise ValueError(f"variance model {name!r} has no parameter(s) {sorted(bad)}; known: {sorted(allowed)}")
-    return VARIANCE_MODELS[name](**params)
+    return build_from_registry(VARIANCE_MODELS, "variance model", name, params)

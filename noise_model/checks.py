@@ -19,6 +19,7 @@ __all__ = [
     "check_mask",
     "check_covariances",
     "check_positive_scalar",
+    "build_from_registry",
 ]
 
 #: Largest plausible depth [m]. A uint16 depth image at the D435's default 1 mm scale reaches 65.5 m;
@@ -213,3 +214,19 @@ def check_covariances(cov, n: int | None = None, name: str = "cov_cam") -> np.nd
         if float(np.diagonal(a, axis1=1, axis2=2).min()) < 0:
             raise ValueError(f"{name} has negative variances on the diagonal")
     return a
+
+
+def build_from_registry(registry: dict, kind: str, name: str, params: dict, hidden=()):
+    """Call the factory ``registry[name](**params)``, checking the name and the parameter names.
+
+    Raises ``ValueError`` naming the unknown ``kind`` (e.g. "effect") or parameter and the known ones.
+    """
+    import inspect
+
+    if name not in registry:
+        raise ValueError(f"unknown {kind} {name!r}; known: {', '.join(registry)}")
+    allowed = set(inspect.signature(registry[name]).parameters) - set(hidden)
+    bad = set(params) - allowed
+    if bad:
+        raise ValueError(f"{kind} {name!r} has no parameter(s) {sorted(bad)}; known: {sorted(allowed)}")
+    return registry[name](**params)

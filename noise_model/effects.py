@@ -293,12 +293,6 @@ def make_effect(name: str, **params) -> Effect:
     ValueError
         Unknown name or parameter, or a bad value.
     """
-    if name not in EFFECTS:
-        raise ValueError(f"unknown effect {name!r}; known: {', '.join(EFFECTS)}")
-    import inspect
+    from .checks import build_from_registry
 
-    allowed = set(inspect.signature(EFFECTS[name]).parameters) - {"model"}
-    bad = set(params) - allowed
-    if bad:
-        raise ValueError(f"effect {name!r} has no parameter(s) {sorted(bad)}; known: {sorted(allowed)}")
-    return EFFECTS[name](**params)
+    return build_from_registry(EFFECTS, "effect", name, params, hidden=("model",))
