@@ -249,6 +249,7 @@ class _Logger:
         self.cameras = set()
         self.logged = 0
         viz.log_world_frame(rec, "world")
+        self.has_notes = bool(notes)
         if notes:
             viz.log_text(rec, "notes", notes)
 
@@ -281,14 +282,14 @@ class _Logger:
             cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 0], cov[:, 1, 1] = hc[:, 0], hc[:, 1], hc[:, 1], hc[:, 2]
             cov[:, 2, 2] = np.asarray(pts.height_var)[k]
             viz.log_covariance_ellipsoids(rec, "world/points_cov", np.asarray(pts.points_map)[k], cov)
-        viz.log_scalar(rec, "plots/ms_per_frame", stats["total_ms"])
-        viz.log_scalar(rec, "plots/known_cells", int(np.isfinite(emap.data[0]).sum()))
+        viz.log_scalar(rec, "plots/time/ms_per_frame", stats["total_ms"])
+        viz.log_scalar(rec, "plots/cells/known", int(np.isfinite(emap.data[0]).sum()))
         var = emap.data[1][np.isfinite(emap.data[1])]
         if var.size:
-            viz.log_scalar(rec, "plots/mean_sigma_m", float(np.mean(np.sqrt(var))))
+            viz.log_scalar(rec, "plots/metres/mean_sigma", float(np.mean(np.sqrt(var))))
         if score is not None and score["known_cells"]:
-            viz.log_scalar(rec, "plots/error_rmse_m", score["rmse_m"])
-            viz.log_scalar(rec, "plots/coverage_2sigma", score["coverage_2sigma"])
+            viz.log_scalar(rec, "plots/metres/median_abs_error", score["median_abs_m"])
+            viz.log_scalar(rec, "plots/fraction/coverage_2sigma", score["coverage_2sigma"])
         if self.logged % self.config.mesh_every == 0:
             self._meshes(emap)
         self.logged += 1
@@ -309,6 +310,7 @@ class _Logger:
     def _blueprint(self):
         bp = self.viz.default_blueprint(
             depth_entities=[f"world/{c}/depth" for c in sorted(self.cameras)],
-            time_series_entities=["plots"], world="world", timeline="frame",
+            time_series_entities=["plots/time", "plots/cells", "plots/metres", "plots/fraction"],
+            text_entities=["notes"] if self.has_notes else [], world="world", timeline="frame",
             hidden_entities=["world/map/sigma", "world/points_cov"])
         self.rec.send_blueprint(bp)
