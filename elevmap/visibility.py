@@ -136,6 +136,17 @@ def _nonfinite_error(p):
 # ---------------------------------------------------------------------------------------------
 # numba
 # ---------------------------------------------------------------------------------------------
+@njit(inline="always", **_JIT)
+def _axis_start(u0, du):
+    """Step direction and starting cell of a ray along one axis (cell units); a ray moving down from a
+    border starts in the cell below it."""
+    if du > 0.0:
+        return 1, np.int64(math.floor(u0))
+    if du < 0.0:
+        return -1, np.int64(math.ceil(u0)) - 1
+    return 0, np.int64(math.floor(u0))
+
+
 @njit(**_JIT)
 def _t_leave(i, s, u0, rdu):
     """Ray parameter at which the ray leaves cell ``i`` along an axis walked in direction ``s``."""
@@ -172,25 +183,8 @@ def _cast(ceil, ox, oy, oz, px, py, pz, res, gx0, gy0, n):
     dv = ve - v0
     dz = pz - oz
     inf = np.inf
-    # x axis: current cell, direction, next crossing time
-    if du > 0.0:
-        sx = 1
-        ix = np.int64(math.floor(u0))
-    elif du < 0.0:
-        sx = -1
-        ix = np.int64(math.ceil(u0)) - 1
-    else:
-        sx = 0
-        ix = np.int64(math.floor(u0))
-    if dv > 0.0:
-        sy = 1
-        iy = np.int64(math.floor(v0))
-    elif dv < 0.0:
-        sy = -1
-        iy = np.int64(math.ceil(v0)) - 1
-    else:
-        sy = 0
-        iy = np.int64(math.floor(v0))
+    sx, ix = _axis_start(u0, du)        # per axis: step direction and the starting cell
+    sy, iy = _axis_start(v0, dv)
     if max(abs(ix - ex), abs(iy - ey)) <= 1:
         return
     rdu = 1.0 / du if sx != 0 else 0.0

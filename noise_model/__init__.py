@@ -27,6 +27,7 @@ from .checks import (
     check_points,
     check_pose_cov,
     check_transform,
+    check_transforms,
 )
 from .covariance import point_covariances, pose_jacobian, skew, to_map_frame
 from .d435 import D435, THETA_MAX_DEFAULT, SensorModel, axial_sigma, expected_rms_error

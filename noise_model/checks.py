@@ -13,6 +13,7 @@ __all__ = [
     "check_depth",
     "check_intrinsics",
     "check_transform",
+    "check_transforms",
     "check_pose_cov",
     "check_points",
     "check_angles",
@@ -124,6 +125,26 @@ def check_transform(T, name: str = "T_map_cam", *, tol: float = 1e-6) -> np.ndar
         raise ValueError(f"{name} rotation part is not orthonormal (max |R R^T - I| = {err:.2e})")
     if np.linalg.det(R) < 0:
         raise ValueError(f"{name} rotation part is a reflection (det = {np.linalg.det(R):.3f}), not a rotation")
+    return a
+
+
+def check_transforms(T, name: str = "poses", *, tol: float = 1e-6) -> np.ndarray:
+    """Validate a stack of rigid transforms, shape (N, 4, 4), N >= 1, as :func:`check_transform`
+    does one; returns float64. The error names the first bad index."""
+    a = np.asarray(T)
+    if a.ndim != 3 or a.shape[1:] != (4, 4) or a.shape[0] < 1:
+        raise ValueError(f"{name} must have shape (N, 4, 4), got {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"{name} must be floating point, got dtype {a.dtype}")
+    a = a.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} has non-finite entries")
+    R = a[:, :3, :3]
+    err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    bad = (err > tol) | (np.linalg.det(R) < 0) | np.any(np.abs(a[:, 3] - [0, 0, 0, 1]) > tol, axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{name}[{i}] is not a rigid transform (rotation orthonormal, det +1, bottom row 0 0 0 1)")
     return a
 
 

@@ -82,7 +82,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from .checks import check_intrinsics, check_positive_scalar, check_transform
+from .checks import check_intrinsics, check_positive_scalar, check_transform, check_transforms
+from .covariance import skew
 from .d435 import D435, SensorModel, _axial_sigma_unchecked
 from .kernels import FASTMATH, resolve_threads
 from .sim import camera_extrinsics
@@ -1569,28 +1570,6 @@ def walk(path_xy, speed_mps: float = 0.5, rate_hz: float = 30.0, base_height_m: 
     return np.stack([_yaw_pose(xy[i, 0], xy[i, 1], ground[i] + hb, yaw[i]) for i in range(n)])
 
 
-def _check_poses(poses, name="poses") -> np.ndarray:
-    P = np.asarray(poses)
-    if P.ndim != 3 or P.shape[1:] != (4, 4) or P.shape[0] < 1:
-        raise ValueError(f"{name} must have shape (N, 4, 4), got {P.shape}")
-    if not np.issubdtype(P.dtype, np.floating):
-        raise ValueError(f"{name} must be floating point, got dtype {P.dtype}")
-    P = P.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(P)):
-        raise ValueError(f"{name} has non-finite entries")
-    R = P[:, :3, :3]
-    err = np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-    bad = (err > 1e-6) | (np.linalg.det(R) < 0) | np.any(np.abs(P[:, 3] - [0, 0, 0, 1]) > 1e-6, axis=1)
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{name}[{i}] is not a rigid transform (rotation orthonormal, det +1, bottom row 0 0 0 1)")
-    return P
-
-
-def _skew(v):
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def odometry_drift(poses, rng: np.random.Generator, sigma_xy_per_m: float = 0.02,
                    sigma_yaw_per_m: float = 0.01, sigma_z_per_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """What odometry would report along true base poses: noisy increments, integrated.
@@ -1624,7 +1603,7 @@ def odometry_drift(poses, rng: np.random.Generator, sigma_xy_per_m: float = 0.02
         ``noise_model.to_map_frame``: T' = (Exp(phi) R, t + rho)); zero for the first pose, growing
         with the distance travelled.
     """
-    P = _check_poses(poses)
+    P = check_transforms(poses, "poses")
     rng = _rng(rng)
     sig = []
     for value, name in ((sigma_xy_per_m, "sigma_xy_per_m"), (sigma_yaw_per_m, "sigma_yaw_per_m"),
@@ -1648,7 +1627,7 @@ def odometry_drift(poses, rng: np.random.Generator, sigma_xy_per_m: float = 0.02
         out[k] = out[k - 1] @ U @ E
         # first order: rho_k = rho_{k-1} - [delta]_x phi_{k-1} + R_k n_t, phi_k = phi_{k-1} + R_k n_r
         F = np.eye(6)
-        F[:3, 3:] = -_skew(delta)
+        F[:3, 3:] = -skew(delta)
         G = np.zeros((6, 6))
         G[:3, :3] = P[k, :3, :3]
         G[3:, 3:] = P[k, :3, :3]
@@ -1682,7 +1661,7 @@ def camera_pose_cov(base_cov, T_map_base, T_base_cam) -> np.ndarray:
     Tb = check_transform(T_map_base, "T_map_base")
     Tc = check_transform(T_base_cam, "T_base_cam")
     J = np.eye(6)
-    J[:3, 3:] = -_skew(Tb[:3, :3] @ Tc[:3, 3])
+    J[:3, 3:] = -skew(Tb[:3, :3] @ Tc[:3, 3])
     out = J @ C @ J.T
     return 0.5 * (out + out.T)
 

@@ -144,3 +144,16 @@ def test_bad_inputs_name_what_is_wrong(rng):
         to_map_frame(C, p, T, np.full((6, 6), np.nan))
     with pytest.raises(ValueError, match="2 covariances but there are 1 points"):
         to_map_frame(np.repeat(C, 2, axis=0), p, T)
+
+
+def test_stacks_of_transforms_are_validated_naming_the_bad_one(rng):
+    from noise_model import check_transforms
+
+    good = np.stack([random_transform(rng) for _ in range(3)])
+    np.testing.assert_array_equal(check_transforms(good), good)
+    bad = good.copy()
+    bad[2, :3, :3] *= 1.01
+    with pytest.raises(ValueError, match=r"poses\[2\] is not a rigid transform"):
+        check_transforms(bad)
+    with pytest.raises(ValueError, match=r"shape \(N, 4, 4\)"):
+        check_transforms(np.eye(4))

@@ -240,13 +240,19 @@ def _read_tum(path: Path, lines: list[str]) -> PoseTrack:
         where.append(lineno)
     if not poses:
         raise ValueError(f"{path}: no poses (expected lines '{what}')")
-    s = np.array(stamps)
+    s = _increasing(path, stamps, where)
+    return PoseTrack(np.array(poses), s, str(path))
+
+
+def _increasing(path, stamps, lines) -> np.ndarray:
+    """The stamps as an array; ValueError naming the file and line of the first that does not increase."""
+    s = np.array(stamps, dtype=np.float64)
     bad = np.flatnonzero(np.diff(s) <= 0)
     if bad.size:
         k = int(bad[0]) + 1
-        raise ValueError(f"{path}, line {where[k]}: timestamp {float(s[k])!r} does not increase "
+        raise ValueError(f"{path}, line {lines[k]}: timestamp {float(s[k])!r} does not increase "
                          f"(previous {float(s[k - 1])!r})")
-    return PoseTrack(np.array(poses), s, str(path))
+    return s
 
 
 def _scaled(value: float, scale: float) -> float:
@@ -286,12 +292,7 @@ def _read_log(path: Path, lines: list[str], log_stamp_scale: float | None) -> Po
         poses.append(M)
     s = None
     if log_stamp_scale is not None:
-        s = np.array(stamps)
-        bad = np.flatnonzero(np.diff(s) <= 0)
-        if bad.size:
-            k = int(bad[0]) + 1
-            raise ValueError(f"{path}, line {rows[5 * k][0]}: timestamp {float(stamps[k])!r} does not increase "
-                             f"(previous {float(stamps[k - 1])!r})")
+        s = _increasing(path, stamps, [rows[5 * k][0] for k in range(len(stamps))])
     return PoseTrack(np.array(poses), s, str(path))
 
 
