@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numba
 import numpy as np
@@ -49,10 +50,16 @@ from .layers import (
     LAYERS,
     MAX_HEIGHT,
     MIN_HEIGHT,
+    INFO_SQ_SUM,
+    INFO_SUM,
     POINTS,
+    SCATTER,
+    SPREAD,
     TIME,
     UPPER_BOUND,
     VARIANCE,
+    ZERO_WHEN_UNKNOWN,
+    clear_sums,
 )
 
 __all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "fuse_frame_reference", "PARTIALS"]
@@ -65,8 +72,9 @@ CHI2_Z = 3.719
 #: Number of partial grids (fixed, so that the summation order never depends on the thread count).
 PARTIALS = 8
 # accumulator fields per partial grid and cell
-(A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, R_W, R_WZ, R_N, R_ZMIN, R_ZMAX, H_X, H_XY, H_Y, A_WZZ) = range(14)
-NACC = 14
+(A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, R_W, R_WZ, R_N, R_ZMIN, R_ZMAX, H_X, H_XY, H_Y, A_WZZ, A_W0, A_WZ0, A_WZZ0,
+ A_WW0) = range(18)
+NACC = 18
 
 
 @dataclass(frozen=True)
@@ -93,6 +101,13 @@ class FusionParams:
         the noise model, Wilson-Hilferty approximation): points that scatter more than their
         stated variances allow (two surfaces in one cell, points bled over an edge, underestimated
         noise) must not make the cell confident.
+    spread_alpha : float or None
+        Significance level of the spread test: a cell's points scatter about its height more than
+        their modelled noise allows (chi-square above its 1 - spread_alpha quantile) -> tau^2 > 0
+        (DerSimonian-Laird), added to the cell's variance. 0.5 (default): the plain DerSimonian-Laird
+        estimator, any excess counts; smaller: only a significant excess. None: no spread (tau^2 = 0).
+        Measured on the simulated stairs / boxes walks (``elevmap compare``, 60 frames): 2-sigma
+        coverage 0.91 / 0.81 with 0.5, 0.90 / 0.79 with 0.1, 0.86 / 0.75 with 1e-3, 0.75 / 0.58 without.
     """
 
     mahalanobis_threshold: float = 2.5
@@ -103,6 +118,7 @@ class FusionParams:
     change_min_points: int = 3
     max_points_per_frame: float | None = None
     scatter_inflation: bool = True
+    spread_alpha: float | None = 0.5
 
     def __post_init__(self):
         for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
@@ -119,15 +135,19 @@ class FusionParams:
         if self.max_points_per_frame is not None and not (
                 math.isfinite(self.max_points_per_frame) and self.max_points_per_frame >= 1):
             raise ValueError(f"max_points_per_frame must be None or >= 1, got {self.max_points_per_frame!r}")
+        if self.spread_alpha is not None and not (isinstance(self.spread_alpha, (int, float))
+                                                  and 1e-12 <= self.spread_alpha <= 0.5):
+            raise ValueError(f"spread_alpha must be None or in [1e-12, 0.5], got {self.spread_alpha!r}")
 
     def array(self, resolution_m: float) -> np.ndarray:
         """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off),
-        scatter inflation (0/1)."""
+        scatter inflation (0/1), spread z (normal quantile of 1 - spread_alpha; -1 = off)."""
         min_h = (resolution_m / 2) ** 2 if self.min_horizontal_variance is None else self.min_horizontal_variance
         return np.array([self.mahalanobis_threshold, self.min_variance, self.max_variance, min_h,
                          self.max_horizontal_variance, float(self.change_min_points),
                          0.0 if self.max_points_per_frame is None else float(self.max_points_per_frame),
-                         1.0 if self.scatter_inflation else 0.0])
+                         1.0 if self.scatter_inflation else 0.0,
+                         -1.0 if self.spread_alpha is None else NormalDist().inv_cdf(1.0 - self.spread_alpha)])
 
 
 class FusionWorkspace:
@@ -144,14 +164,61 @@ class FusionWorkspace:
 # numba
 # ---------------------------------------------------------------------------------------------
 @njit(**_JIT)
+def _spread_update(data, bi, bj, known, h_prior, N, W0, WZ0, WZZ0, WW0, spread_z):
+    """Add a frame's points in the cell to its spread statistics; return the new tau^2.
+
+    N, W0, WZ0, WZZ0, WW0 are the frame's count and sums of w, w z, w z^2 and w^2 over all its points
+    in the cell (accepted by the gate or not), with the points' own weights w = 1/sigma^2. The
+    scatter about the cell's height is accumulated with the parallel-axis rule (the frame's own
+    scatter plus its mean's distance to the prior height) and stored as its excess over its
+    expectation under the noise model, Q - (n - 1); tau^2 follows the DerSimonian-Laird moment
+    estimator (see the module docstring).
+    """
+    mb = WZ0 / W0
+    qb = max(WZZ0 - WZ0 * mb, 0.0)
+    s1 = data[INFO_SUM, bi, bj] if known else 0.0
+    s2 = data[INFO_SQ_SUM, bi, bj] if known else 0.0
+    if s1 > 0.0:
+        excess = data[SCATTER, bi, bj] + qb + s1 * W0 / (s1 + W0) * (mb - h_prior) * (mb - h_prior) - N
+    else:
+        excess = qb - (N - 1.0)
+    s1 += W0
+    s2 += WW0
+    n = (data[POINTS, bi, bj] if known else 0.0) + N     # POINTS is updated after this call
+    data[INFO_SUM, bi, bj] = s1
+    data[INFO_SQ_SUM, bi, bj] = s2
+    data[SCATTER, bi, bj] = excess
+    return _dl_tau2(excess, n, s1, s2, spread_z)
+
+
+@njit(**_JIT)
+def _dl_tau2(excess, n, s1, s2, spread_z):
+    """DerSimonian-Laird tau^2 = (Q - (n - 1)) / (S1 - S2 / S1) from the excess Q - (n - 1), where Q is
+    significant (above its 1 - SPREAD_ALPHA quantile under the noise model, Wilson-Hilferty); else 0."""
+    den = s1 - s2 / s1
+    if n < 2.0 or not den > 0.0:           # one point (or equal weights of one): no spread to see
+        return 0.0
+    k = n - 1.0
+    c = 1.0 - 2.0 / (9.0 * k) + spread_z * math.sqrt(2.0 / (9.0 * k))
+    if not excess + k > k * c * c * c:
+        return 0.0
+    return max(excess, 0.0) / den
+
+
+@njit(**_JIT)
 def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h, stamp,
-                params, WZZ):
+                params, WZZ, W0, WZ0, WZZ0, WW0):
     """Combine one cell's frame sums with its prior and write the cell (see the module docstring)."""
     thr, min_var, max_var, min_h, max_h, change_min, cap, inflate = (
         params[0], params[1], params[2], params[3], params[4], params[5], params[6], params[7])
+    spread_z = params[8]
     h = data[ELEVATION, bi, bj]
-    v = data[VARIANCE, bi, bj]
     known = not np.isnan(h)
+    tau2 = data[SPREAD, bi, bj]
+    if not tau2 >= 0.0:                # NaN (unknown cell)
+        tau2 = 0.0
+    h_prior = h
+    v = data[VARIANCE, bi, bj] - tau2  # variance of the fused mean
     if inflate > 0.0 and N >= 2.0:
         chi2 = (WZZ - WZ * WZ / W) / (N - 1.0)
         k = N - 1.0           # chi2 > its 1 - 1e-4 quantile (Wilson-Hilferty), per degree of freedom
@@ -185,8 +252,14 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
             data[HVAR_XY, bi, bj] = 0.0
             data[UPPER_BOUND, bi, bj] = np.nan
             data[TIME, bi, bj] = stamp
+            data[INFO_SUM, bi, bj] = 0.0       # the spread statistics start again with the next frame
+            data[INFO_SQ_SUM, bi, bj] = 0.0
+            data[SCATTER, bi, bj] = 0.0
+            tau2 = 0.0
             updated = True
     if not reset and N > 0.0:
+        if spread_z >= 0.0:
+            tau2 = _spread_update(data, bi, bj, known, h_prior, N + Nr, W0, WZ0, WZZ0, WW0, spread_z)
         if known:
             ip = 1.0 / v
             v = 1.0 / (ip + W)
@@ -217,10 +290,11 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     if v > max_var:
         for layer in range(data.shape[0]):
             data[layer, bi, bj] = np.nan
-        data[POINTS, bi, bj] = 0.0
+        clear_sums(data, bi, bj)
         return
     data[ELEVATION, bi, bj] = h
-    data[VARIANCE, bi, bj] = v
+    data[VARIANCE, bi, bj] = v + tau2
+    data[SPREAD, bi, bj] = tau2
     ub = data[UPPER_BOUND, bi, bj]
     if ub < h:                     # the terrain rose above an old free-space bound: the bound is stale
         data[UPPER_BOUND, bi, bj] = np.nan
@@ -260,9 +334,15 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
                 acc[p, c, R_ZMAX] = -inf
             zk = z[k]
             vk = var[k]
-            w = 1.0 / vk
+            t2 = data[SPREAD, bi, bj]
+            w0 = 1.0 / vk
+            w = 1.0 / (vk + t2) if t2 > 0.0 else w0     # NaN (unknown cell): its own weight
             h = data[ELEVATION, bi, bj]
             d = zk - h
+            acc[p, c, A_W0] += w0          # every point, accepted or not, for the spread
+            acc[p, c, A_WZ0] += w0 * zk
+            acc[p, c, A_WZZ0] += w0 * zk * zk
+            acc[p, c, A_WW0] += w0 * w0
             if (not np.isnan(h)) and d * d > thr2 * (vk + data[VARIANCE, bi, bj]):
                 acc[p, c, R_W] += w
                 acc[p, c, R_WZ] += w * zk
@@ -282,7 +362,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
                     acc[p, c, H_Y] += w * hcov[k, 2]
     touched = 0
     for c in prange(n * n):
-        W = WZ = WZZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = 0.0
+        W = WZ = WZZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = W0 = WZ0 = WZZ0 = WW0 = 0.0
         zmin = zminr = inf
         zmax = zmaxr = -inf
         seen = False
@@ -292,6 +372,10 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
                 W += acc[p, c, A_W]
                 WZ += acc[p, c, A_WZ]
                 WZZ += acc[p, c, A_WZZ]
+                W0 += acc[p, c, A_W0]
+                WZ0 += acc[p, c, A_WZ0]
+                WZZ0 += acc[p, c, A_WZZ0]
+                WW0 += acc[p, c, A_WW0]
                 Nn += acc[p, c, A_N]
                 zmin = min(zmin, acc[p, c, A_ZMIN])
                 zmax = max(zmax, acc[p, c, A_ZMAX])
@@ -311,7 +395,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
             Hxy /= W
             Hy /= W
         _merge_cell(data, c // n, c % n, W, WZ, Nn, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h,
-                    stamp, params, WZZ)
+                    stamp, params, WZZ, W0, WZ0, WZZ0, WW0)
     return touched
 
 
@@ -355,7 +439,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     g = geometry
     n = g.n
     p = params.array(g.resolution_m)
-    thr, min_var, max_var, min_h, max_h, change_min, cap, inflate = p
+    thr, min_var, max_var, min_h, max_h, change_min, cap, inflate, spread_z = p
     x, y, z = points_map[:, 0], points_map[:, 1], points_map[:, 2]
     c, inside = _cells(n, g.gx0, g.gy0, g.resolution_m, x, y)
     z, var = z[inside], height_var[inside]
@@ -364,7 +448,10 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     h0, v0 = flat[ELEVATION, c], flat[VARIANCE, c]
     rej = ~np.isnan(h0) & ((z - h0) ** 2 > thr * thr * (var + v0))
     acc = ~rej
-    w = 1.0 / var
+    tau2_old = np.where(flat[SPREAD] > 0, flat[SPREAD], 0.0)      # NaN (unknown) -> 0
+    t2 = tau2_old[c]
+    w0 = 1.0 / var
+    w = np.where(t2 > 0, 1.0 / (var + t2), w0)
     m = n * n
 
     def bc(mask, weights=None):
@@ -377,6 +464,8 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
 
     W, WZ, N = bc(acc, w), bc(acc, w * z), bc(acc)
     WZZ = bc(acc, w * z * z)
+    every = np.ones_like(acc)
+    W0, WZ0, WZZ0, WW0 = bc(every, w0), bc(every, w0 * z), bc(every, w0 * z * z), bc(every, w0 * w0)
     Wr, WZr, Nr = bc(rej, w), bc(rej, w * z), bc(rej)
     zmin, zmax = extreme(acc, np.minimum, np.inf), extreme(acc, np.maximum, -np.inf)
     zminr, zmaxr = extreme(rej, np.minimum, np.inf), extreme(rej, np.maximum, -np.inf)
@@ -395,7 +484,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
             W, WZ = W * s, WZ * s
             sr = np.where(Nr > cap, cap / np.maximum(Nr, 1), 1.0)
             Wr, WZr = Wr * sr, WZr * sr
-        h, v = flat[ELEVATION].copy(), flat[VARIANCE].copy()
+        h, v = flat[ELEVATION].copy(), flat[VARIANCE] - tau2_old
         known = ~np.isnan(h)
         change = seen & known & (Nr >= change_min) & (Nr > N)
         mr = WZr / Wr
@@ -408,7 +497,26 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         h_post = np.where(fuse_known, (h / v + WZ) * v_post, np.where(fuse_new, WZ / W, h))
         h_post = np.where(reset, mr, h_post)
         v_post = np.where(reset, 1.0 / Wr, v_post)
+        # spread statistics (see _spread_update)
+        mb = WZ0 / W0
+        qb = np.maximum(WZZ0 - WZ0 * mb, 0.0)
+        s1o = np.where(fuse_known, flat[INFO_SUM], 0.0)
+        s2o = np.where(fuse_known, flat[INFO_SQ_SUM], 0.0)
+        qo = np.where(fuse_known, flat[SCATTER], 0.0)
+        Nall = N + Nr
+        q = np.where(s1o > 0, qo + qb + s1o * W0 / (s1o + W0) * (mb - h) ** 2 - Nall, qb - (Nall - 1.0))
+        s1, s2 = s1o + W0, s2o + WW0
+        den = s1 - s2 / s1
+        npts = np.where(fuse_known, flat[POINTS], 0.0) + N
+        kk = np.maximum(npts - 1.0, 1.0)
+        crit = kk * (1.0 - 2.0 / (9.0 * kk) + spread_z * np.sqrt(2.0 / (9.0 * kk))) ** 3
+        tau2_new = np.where((spread_z >= 0) & (npts >= 2) & (den > 0) & (q + kk > crit), np.maximum(q, 0.0) / den,
+                            0.0)
+    tau2 = np.where(reset, 0.0, np.where(fuse, tau2_new, tau2_old))
     L = flat
+    L[INFO_SUM] = np.where(reset, 0.0, np.where(fuse, s1, L[INFO_SUM]))
+    L[INFO_SQ_SUM] = np.where(reset, 0.0, np.where(fuse, s2, L[INFO_SQ_SUM]))
+    L[SCATTER] = np.where(reset, 0.0, np.where(fuse, q, L[SCATTER]))
     L[MIN_HEIGHT] = np.where(reset, zminr, np.where(fuse_known, np.minimum(L[MIN_HEIGHT], zmin),
                                                      np.where(fuse_new, zmin, L[MIN_HEIGHT])))
     L[MAX_HEIGHT] = np.where(reset, zmaxr, np.where(fuse_known, np.maximum(L[MAX_HEIGHT], zmax),
@@ -428,10 +536,12 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     v_post = np.where(write, np.maximum(v_post, min_var), v_post)
     expire = write & (v_post > max_var)
     L[ELEVATION] = np.where(write, h_post, L[ELEVATION])
-    L[VARIANCE] = np.where(write, v_post, L[VARIANCE])
+    L[VARIANCE] = np.where(write, v_post + tau2, L[VARIANCE])
+    L[SPREAD] = np.where(write, tau2, L[SPREAD])
     with np.errstate(invalid="ignore"):
         stale = write & (L[UPPER_BOUND] < L[ELEVATION])
     L[UPPER_BOUND] = np.where(stale, np.nan, L[UPPER_BOUND])
     L[:, expire] = np.nan
-    L[POINTS, expire] = 0.0
+    for name in ZERO_WHEN_UNKNOWN:
+        L[LAYERS.index(name), expire] = 0.0
     return int(seen.sum())

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 __all__ = ["LAYERS", "ELEVATION", "VARIANCE", "MIN_HEIGHT", "MAX_HEIGHT", "HVAR_X", "HVAR_Y", "HVAR_XY", "TIME",
-           "POINTS", "UPPER_BOUND", "UNKNOWN_VALUES"]
+           "POINTS", "UPPER_BOUND", "SPREAD", "INFO_SUM", "INFO_SQ_SUM", "SCATTER", "UNKNOWN_VALUES",
+           "ZERO_WHEN_UNKNOWN", "LAYERS_V1"]
 
-#: Layer names, in storage order. NaN means unknown in every layer but ``points`` (0 when unknown).
+#: Layer names, in storage order. NaN means unknown in every layer but ``points`` and the three
+#: sums behind ``spread`` (0 when unknown).
 LAYERS = (
     "elevation",               # fused height of the cell [m], map frame
-    "variance",                # its variance [m^2]
+    "variance",                # variance of the true height at the cell's centre [m^2]: that of the
+                               # fused mean plus ``spread``
     "min_height",              # lowest accepted point since the cell was last reset [m]
     "max_height",              # highest accepted point since the cell was last reset [m]
     "horizontal_variance_x",   # horizontal position uncertainty of the cell [m^2]
@@ -17,8 +20,39 @@ LAYERS = (
     "time",                    # stamp of the last update [s]
     "points",                  # points fused since the cell was last reset [-]
     "upper_bound",             # free-space bound from visibility: the terrain is below it [m]
+    "spread",                  # tau^2: variance of the cell's points about its height beyond their
+                               # modelled noise (steps inside the cell, points displaced over an edge,
+                               # unmodelled sensor effects) [m^2]; random-effects estimate, see fusion
+    "info_sum",                # sum of 1/sigma_i^2 of the accepted points since the last reset [1/m^2]
+    "info_sq_sum",             # sum of 1/sigma_i^4 [1/m^4]
+    "scatter",                 # excess scatter Q - (n - 1), Q = sum (z_i - h)^2/sigma_i^2 over the points [-]
 )
-(ELEVATION, VARIANCE, MIN_HEIGHT, MAX_HEIGHT, HVAR_X, HVAR_Y, HVAR_XY, TIME, POINTS, UPPER_BOUND) = range(len(LAYERS))
+(ELEVATION, VARIANCE, MIN_HEIGHT, MAX_HEIGHT, HVAR_X, HVAR_Y, HVAR_XY, TIME, POINTS, UPPER_BOUND, SPREAD, INFO_SUM,
+ INFO_SQ_SUM, SCATTER) = range(len(LAYERS))
+
+#: Layers that are 0, not NaN, in an unknown cell (counts and sums).
+ZERO_WHEN_UNKNOWN = ("points", "info_sum", "info_sq_sum", "scatter")
 
 #: The value of each layer in an unknown cell.
-UNKNOWN_VALUES = tuple(0.0 if name == "points" else float("nan") for name in LAYERS)
+UNKNOWN_VALUES = tuple(0.0 if name in ZERO_WHEN_UNKNOWN else float("nan") for name in LAYERS)
+
+#: The layers of maps saved before ``spread`` existed (loaded with spread 0: no excess scatter).
+LAYERS_V1 = LAYERS[:10]
+
+
+def _clear_sums_py(data, bi, bj):
+    """Set the counts and sums of cell (bi, bj) of ``data`` (len(LAYERS), n, n) to their unknown value, 0."""
+    data[POINTS, bi, bj] = 0.0
+    data[INFO_SUM, bi, bj] = 0.0
+    data[INFO_SQ_SUM, bi, bj] = 0.0
+    data[SCATTER, bi, bj] = 0.0
+
+
+def _jit():
+    from numba import njit
+
+    return njit(cache=True)(_clear_sums_py)
+
+
+#: numba version of :func:`_clear_sums_py`, for the kernels that clear a cell (its other layers NaN).
+clear_sums = _jit()

@@ -93,7 +93,7 @@ from scipy.special import ndtr
 from noise_model.checks import check_pose_cov, check_transform
 from noise_model.kernels import FASTMATH, resolve_threads
 
-from .layers import ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, POINTS, UNKNOWN_VALUES, VARIANCE
+from .layers import ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, UNKNOWN_VALUES, VARIANCE, clear_sums
 
 __all__ = ["predict", "predict_reference", "fused_map", "fused_map_reference", "UNCERTAINTY_FACTOR",
            "FUSED_LAYERS"]
@@ -185,7 +185,7 @@ def _predict_kernel(data, gx0, gy0, res, coef, robot, growth, params):
             if not (v <= max_var):                 # above the maximum (or NaN): the cell is unknown
                 for layer in range(nl):
                     data[layer, bi, bj] = np.nan
-                data[POINTS, bi, bj] = 0.0
+                clear_sums(data, bi, bj)
                 cnt += 1
                 continue
             data[VARIANCE, bi, bj] = v

@@ -49,7 +49,7 @@ from .elevation_map import ElevationMap
 from .fileio import atomic_output
 from .fusion import FusionParams
 from .grid import GridGeometry
-from .layers import ELEVATION, LAYERS, VARIANCE
+from .layers import ELEVATION, LAYERS, LAYERS_V1, UNKNOWN_VALUES, VARIANCE
 
 __all__ = [
     "height_at",
@@ -606,7 +606,7 @@ def _load(path, cls):
         return a[()]
 
     names = text("layers")
-    if names != list(LAYERS):
+    if names not in (list(LAYERS), list(LAYERS_V1)):
         raise bad(f"layers {names} do not match this version's {list(LAYERS)}")
     n = int(scalar("n", "iu"))
     res = float(scalar("resolution_m", "f"))
@@ -616,8 +616,14 @@ def _load(path, cls):
     if n < 1 or not (math.isfinite(res) and res > 0):
         raise bad(f"bad geometry n={n}, resolution_m={res}")
     data = arrays["data"]
-    if data.shape != (len(LAYERS), n, n) or data.dtype != np.float64:
-        raise bad(f"data must be float64 of shape {(len(LAYERS), n, n)}, got {data.dtype} {data.shape}")
+    if data.shape != (len(names), n, n) or data.dtype != np.float64:
+        raise bad(f"data must be float64 of shape {(len(names), n, n)}, got {data.dtype} {data.shape}")
+    if len(names) < len(LAYERS):         # a map saved before the spread layers: no spread seen yet
+        extra = np.empty((len(LAYERS) - len(names), n, n))
+        extra[:] = np.array(UNKNOWN_VALUES[len(names):])[:, None, None]
+        known = np.isfinite(data[LAYERS.index("elevation")])
+        extra[LAYERS.index("spread") - len(names)][known] = 0.0
+        data = np.concatenate([data, extra])
     params = text("fusion_params")
     settings = text("settings")
     try:

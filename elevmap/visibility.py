@@ -56,7 +56,7 @@ from numba import njit, prange
 from noise_model.kernels import FASTMATH, resolve_threads
 
 from .fusion import PARTIALS
-from .layers import ELEVATION, LAYERS, POINTS, TIME, UNKNOWN_VALUES, UPPER_BOUND, VARIANCE
+from .layers import ELEVATION, LAYERS, TIME, UNKNOWN_VALUES, UPPER_BOUND, VARIANCE, clear_sums
 
 __all__ = ["visibility_cleanup", "visibility_cleanup_reference"]
 
@@ -334,7 +334,7 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
         if (not np.isnan(h)) and data[TIME, bi, bj] != stamp and cm < h - 3.0 * math.sqrt(data[VARIANCE, bi, bj]):
             for layer in range(data.shape[0]):
                 data[layer, bi, bj] = np.nan
-            data[POINTS, bi, bj] = 0.0
+            clear_sums(data, bi, bj)
             data[UPPER_BOUND, bi, bj] = cm
             cleared += 1
         else:

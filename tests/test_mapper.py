@@ -5,6 +5,7 @@ import pytest
 
 import noise_model as nm
 from elevmap import Camera, ElevationMap, FusionParams, Mapper
+from elevmap.layers import LAYERS
 from noise_model.sim import camera_extrinsics
 
 W, H = 424, 240
@@ -69,13 +70,16 @@ def test_numba_and_numpy_mappers_agree(rng):
         a.integrate("c", d, T_map_cam=T, pose_cov=P, stamp=f)
         b.integrate("c", d, T_map_cam=T, pose_cov=P, stamp=f, impl="numpy")
     np.testing.assert_array_equal(np.isnan(a.map.data), np.isnan(b.map.data))
-    np.testing.assert_allclose(a.map.data, b.map.data, rtol=1e-9, atol=1e-12)
+    sums = [LAYERS.index("scatter")]            # sums of O(n) terms that cancel: compare on their scale
+    rest = [k for k in range(len(LAYERS)) if k not in sums]
+    np.testing.assert_allclose(a.map.data[rest], b.map.data[rest], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(a.map.data[sums], b.map.data[sums], rtol=1e-7, atol=1e-7)
 
 
 def test_pose_uncertainty_makes_the_map_less_confident(rng):
     T = camera_extrinsics((0.0, 0.0, 0.45), 30.0)
     d = floor_depth(T, rng)
-    plain = FusionParams(scatter_inflation=False)          # isolate the pose term
+    plain = FusionParams(scatter_inflation=False, spread_alpha=None)          # isolate the pose term
     sure = Mapper(ElevationMap(4.0, 0.04, fusion_params=plain), [Camera("c", K, W, H)])
     unsure = Mapper(ElevationMap(4.0, 0.04, fusion_params=plain), [Camera("c", K, W, H)])
     sure.integrate("c", d, T_map_cam=T)

@@ -9,7 +9,7 @@ import pytest
 
 from conftest import random_pose_cov, random_transform
 from elevmap import ElevationMap, FusionParams
-from elevmap.layers import ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, LAYERS, POINTS, TIME, VARIANCE
+from elevmap.layers import ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, LAYERS, POINTS, TIME, VARIANCE, ZERO_WHEN_UNKNOWN
 from elevmap.prediction import MIN_WEIGHT, fused_map, fused_map_reference, predict, predict_reference
 
 IMPLS = ("numba", "numpy")
@@ -141,7 +141,7 @@ def test_variance_above_max_makes_the_cell_unknown(impl):
     assert out == {"cells_expired": 1}
     L = m.layers()
     for name in LAYERS:
-        if name == "points":
+        if name in ZERO_WHEN_UNKNOWN:
             assert L[name][0, 0] == 0.0
         else:
             assert np.isnan(L[name][0, 0]), name

@@ -437,6 +437,32 @@ def test_save_load_round_trip_is_bit_exact(tmp_path):
     assert type(q.load(path)) is ElevationMap
 
 
+def test_maps_saved_before_the_spread_layers_still_load(tmp_path):
+    import json
+
+    from elevmap.layers import LAYERS, LAYERS_V1
+
+    m = busy_map()
+    path = tmp_path / "map.npz"
+    m.save(path)
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["data"] = arrays["data"][: len(LAYERS_V1)]
+    arrays["layers"] = np.array(json.dumps(list(LAYERS_V1)))
+    fp = json.loads(str(arrays["fusion_params"]))
+    fp.pop("spread_alpha")
+    arrays["fusion_params"] = np.array(json.dumps(fp))
+    old = tmp_path / "old.npz"
+    np.savez(old, **arrays)
+    r = ElevationMap.load(old)
+    assert r.data.shape[0] == len(LAYERS)
+    np.testing.assert_array_equal(r.data[: len(LAYERS_V1)], m.data[: len(LAYERS_V1)])
+    known = r.is_known()
+    assert (r.layer("spread")[known] == 0).all() and np.isnan(r.layer("spread")[~known]).all()
+    assert (r.layer("info_sum") == 0).all() and (r.layer("scatter") == 0).all()
+    r.update(np.column_stack([np.zeros((10, 2)), np.zeros(10)]), np.full(10, 1e-4), stamp=9.0)   # and it goes on
+
+
 def test_save_any_name_and_never_updated_map(tmp_path):
     m = small_map()
     path = tmp_path / "sub" / "map.bin"
