@@ -346,7 +346,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
                 zf = 1.0 / wf if wf > 0.0 else z
                 zf = zf if (zf >= zmin) & (zf <= zmax) else z
-                sf = min(c0 + c1 * zf + c2 * zf * zf + g * zf * math.sqrt(zf),
+                sf = max(c0 + c1 * zf + c2 * zf * zf + g * zf * math.sqrt(zf),
                          c0 + c1 * z + c2 * zz + g * z * math.sqrt(z))
                 zs = zf if abs(z - zf) <= noise_sigmas * sf else z
                 sig = c0 + c1 * zs + c2 * zs * zs + g * zs * math.sqrt(zs)
@@ -491,7 +491,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
         zf = np.where(np.isfinite(z_fit) & (z_fit >= zmin) & (z_fit <= zmax), z_fit, z)
         th = np.nan_to_num(theta)
         zz = np.where(np.isfinite(z), z, 1.0)
-        s = np.minimum(_axial_sigma_unchecked(np.where(np.isfinite(zf), zf, 1.0), th, model),
+        s = np.maximum(_axial_sigma_unchecked(np.where(np.isfinite(zf), zf, 1.0), th, model),
                        _axial_sigma_unchecked(zz, th, model))
         use_fit = np.isfinite(zf) & (np.abs(z - zf) <= NOISE_DEPTH_SIGMAS * s)
     z_noise = np.where(use_fit, zf, z)

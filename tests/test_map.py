@@ -46,7 +46,8 @@ def test_one_frame_is_order_independent_and_equals_sequential_kalman(rng):
     z = rng.normal(0.3, 0.01, 50)
     var = rng.uniform(1e-4, 4e-4, 50)
     pts = np.column_stack([np.full(50, 0.5), np.full(50, 0.5), z])
-    a, b = small_map(), small_map()
+    pure = FusionParams(min_variance=1e-12, spread_alpha=None)      # the Kalman update alone
+    a, b = small_map(fusion_params=pure), small_map(fusion_params=pure)
     a.update(pts, var)
     perm = rng.permutation(50)
     b.update(pts[perm], var[perm])
@@ -113,10 +114,10 @@ def test_a_box_put_down_appears_within_five_frames(step):
 def test_information_cap_limits_what_one_frame_adds():
     var = 0.01 ** 2
     pts = np.column_stack([np.full(400, 0.5), np.full(400, 0.5), np.zeros(400)])
-    capped = small_map(fusion_params=FusionParams(max_points_per_frame=10))
+    capped = small_map(fusion_params=FusionParams(max_points_per_frame=10, min_variance=1e-12))
     capped.update(pts, np.full(400, var))
     assert capped.layer("variance")[1, 1] == pytest.approx(var / 10)
-    free = small_map()
+    free = small_map(fusion_params=FusionParams(min_variance=1e-12))
     free.update(pts, np.full(400, var))
     assert free.layer("variance")[1, 1] == pytest.approx(var / 400)
 
@@ -294,9 +295,10 @@ def test_points_that_scatter_beyond_their_noise_do_not_make_a_cell_confident(rng
     z = np.concatenate([rng.normal(0.0, 0.005, 50), rng.normal(0.1, 0.005, 50)])
     pts = np.column_stack([np.full(100, 0.5), np.full(100, 0.5), z])
     var = np.full(100, 0.005 ** 2)
-    inflated = small_map(fusion_params=FusionParams(spread_alpha=None))
-    plain = small_map(fusion_params=FusionParams(scatter_inflation=False, spread_alpha=None))
-    default = small_map()
+    fine = dict(min_variance=1e-12)            # variances below the default floor are the point here
+    inflated = small_map(fusion_params=FusionParams(spread_alpha=None, **fine))
+    plain = small_map(fusion_params=FusionParams(scatter_inflation=False, spread_alpha=None, **fine))
+    default = small_map(fusion_params=FusionParams(**fine))
     for m in (inflated, plain, default):
         m.update(pts, var)
     assert plain.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)
@@ -310,6 +312,6 @@ def test_points_that_scatter_beyond_their_noise_do_not_make_a_cell_confident(rng
     assert abs(default.layer("elevation")[1, 1] - 0.1) < 2 * np.sqrt(default.layer("variance")[1, 1])
     assert abs(default.layer("elevation")[1, 1] - 0.0) < 2 * np.sqrt(default.layer("variance")[1, 1])
     # points that agree with their noise are not inflated
-    ok = small_map()
+    ok = small_map(fusion_params=FusionParams(min_variance=1e-12))
     ok.update(np.column_stack([np.full(100, 0.5), np.full(100, 0.5), rng.normal(0, 0.005, 100)]), var)
     assert ok.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)
