@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 
 __all__ = ["main", "build_parser"]
 
@@ -96,6 +97,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="PATH", help="the report (required)")
     p.add_argument("--rrd", metavar="PATH", help="rerun recording: the maps side by side, error maps")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+    from .protocol import PROTOCOL
+
+    p = sub.add_parser("characterize", help="your own D435 noise model from a capture set (the paper's method)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description=textwrap.fill("Characterise a depth camera as Ahn et al. (2019) did: find the planar target in "
+                                   "each capture (bilateral filter, Canny edges, the board's quadrilateral), measure "
+                                   "axial noise (pixel-wise temporal std about a fitted plane), lateral noise (left "
+                                   "and right edges), the plane-fit residual and the systematic error against the "
+                                   "measured distance with eq. (1); fit sigma_z(z, theta) in the paper's form and "
+                                   "sigma_L, sigma_R (90th percentiles). Writes the report, the fitted model "
+                                   "(<json stem>.model.json, read by noise_model.SensorModel.load) and the paper's "
+                                   "figures (PNG, rerun).", 100) + "\n\n" + PROTOCOL)
+    p.add_argument("captures", metavar="CAPTURES", help="capture-set folder (captures.json, format d435-captures/1)")
+    p.add_argument("--json", metavar="PATH", required=True, help="the report")
+    p.add_argument("--model", metavar="PATH", help="the fitted model (default: <json stem>.model.json beside the report)")
+    p.add_argument("--rrd", metavar="PATH", help="rerun recording of the figures")
+    p.add_argument("--figures", metavar="DIR", help="folder for the PNG figures (Fig. 2, 3, 4, lateral noise)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     p = sub.add_parser("bench", help="time the numba kernels against their NumPy references",
@@ -299,7 +320,17 @@ def _cmd_compare(args) -> int:
     return 0
 
 
-COMMANDS = {"compare": _cmd_compare, "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
+def _cmd_characterize(args) -> int:
+    from .characterize import format_summary, run_characterize
+
+    report = run_characterize(args.captures, json_path=args.json, rrd_path=args.rrd, figures_dir=args.figures,
+                              model_path=args.model, overwrite=args.overwrite, show_progress=not args.no_progress)
+    print(format_summary(report))
+    print(f"wrote {args.json}" + (f" and {args.rrd}" if args.rrd else ""))
+    return 0 if report["fit"] is not None else 1
+
+
+COMMANDS = {"characterize": _cmd_characterize, "compare": _cmd_compare, "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
 
 
 def main(argv=None) -> int:

@@ -36,6 +36,33 @@ def test_bad_arguments_are_reported_not_raised(capsys):
         main(["no-such-command"])
 
 
+def test_characterize_from_the_command_line(tmp_path, capsys):
+    from elevmap.simulate import simulate_capture_set
+
+    # six settings of the paper's grid, 4 frames each: enough for the command's plumbing (the fit's
+    # accuracy is tested in test_characterize.py)
+    grid = [(d, y) for d in (0.6, 1.0, 1.4) for y in (0.0, 30.0)]
+    simulate_capture_set(tmp_path / "set", grid=grid, n_frames=4, show_progress=False)
+    out = tmp_path / "report.json"
+    code = main(["characterize", str(tmp_path / "set"), "--json", str(out), "--figures", str(tmp_path / "figs"),
+                 "--no-progress"])
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert len(report["fit"]["coefficients"]) == 4 and len(report["fit"]["stderr"]) == 4
+    assert {c["id"] for c in report["captures"]} == {f"board_z{d:.2f}_y{int(y):02d}" for d, y in grid}
+    assert (tmp_path / "report.model.json").exists() and any((tmp_path / "figs").glob("*.png"))
+    assert "sigma_z" in capsys.readouterr().out
+    assert main(["characterize", str(tmp_path / "set"), "--json", str(out), "--no-progress"]) == 2   # no overwrite
+    assert "exists" in capsys.readouterr().err
+
+
+def test_characterize_help_explains_the_recording_protocol():
+    res = subprocess.run([sys.executable, "-m", "elevmap.cli", "characterize", "--help"], capture_output=True, text=True)
+    assert res.returncode == 0
+    for words in ("tripod", "laser distance meter", "0.4 to 2.1 m", "100 frames", "captures.json"):
+        assert words in res.stdout
+
+
 def test_console_script_has_help():
     res = subprocess.run([sys.executable, "-m", "elevmap.cli", "--help"], capture_output=True, text=True)
     assert res.returncode == 0
