@@ -166,7 +166,7 @@ def simulate_target_frames(K, width: int, height: int, distance_m: float, n_fram
                            rng: np.random.Generator, *, yaw_deg: float = 0.0, pitch_deg: float = 0.0,
                            kind: str = "wall", width_m: float | None = None, height_m: float | None = None,
                            background_m: float | None = None, depth_scale: float = 0.001,
-                           model: SensorModel = D435) -> np.ndarray:
+                           model: SensorModel = D435, effects=()) -> np.ndarray:
     """Frames of a planar target under the reference simulation of the paper's model.
 
     Parameters
@@ -175,6 +175,15 @@ def simulate_target_frames(K, width: int, height: int, distance_m: float, n_fram
         Required, so that every simulation is seeded by its caller.
     n_frames : int
         Number of frames.
+    effects : sequence of callables, optional
+        Depth effects (:mod:`noise_model.effects`), ``effect(z, theta, rng, context) -> z``, applied in
+        order to each frame's metric depth after the reference noise and before the rounding, through
+        the hook of :func:`noise_model.scene.add_noise` (context: ``K``, ``width``, ``height``,
+        ``index`` = frame, ``depth_scale``, ``z_true``, ``baseline_m`` = the model's); true depths
+        beyond the uint16 range are then no data. With no effects the frames, and the draws from
+        ``rng``, are those of the reference simulation alone.
+        :func:`noise_model.capture_data.simulate_capture` does the same for a capture with a richer
+        context (capture id, regions).
     (others as :func:`render_planar_target`)
 
     Returns
@@ -188,6 +197,10 @@ def simulate_target_frames(K, width: int, height: int, distance_m: float, n_fram
     nf = int(n_frames)
     if nf < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
+    effects = tuple(effects or ())
+    for k, e in enumerate(effects):
+        if not callable(e):
+            raise ValueError(f"effects[{k}] is not callable: {e!r}")
     out = np.zeros((nf, int(height), int(width)), dtype=np.uint16)
     static = None
     for f in range(nf):
@@ -200,6 +213,15 @@ def simulate_target_frames(K, width: int, height: int, distance_m: float, n_fram
                 static = render_planar_target(K, width, height, distance_m, yaw_deg, pitch_deg, kind, width_m,
                                               height_m, background_m)
             z_true, theta = static
+        if effects:
+            from .scene import add_noise
+
+            far = z_true > min(100.0, 65535 * scale)       # beyond what a uint16 depth can hold: no data
+            if far.any():
+                z_true, theta = np.where(far, np.nan, z_true), np.where(far, np.nan, theta)
+            out[f] = add_noise(z_true, theta, rng, model, effects, scale,
+                               {"K": check_intrinsics(K), "index": f, "baseline_m": model.baseline_m})
+            continue
         hit = np.isfinite(z_true)
         sigma = np.zeros_like(z_true)
         sigma[hit] = _axial_sigma_unchecked(z_true[hit], theta[hit], model)
