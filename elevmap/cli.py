@@ -71,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+    from .compare import effects_help
+
     p = sub.add_parser("compare", help="one simulated walk through several mappers: error and calibration",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Render one simulated walk (the paper's reference noise plus optional effects)\n"
@@ -81,13 +83,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "  (2 cm), quadratic (elevation_mapping_cupy: 0.05 z^2), anybotics_d435\n"
                                    "  (ANYbotics' D435 preset), paper_capped (the paper's model with the per-frame\n"
                                    "  information cap --cap)\n"
-                                   "sim effects (noise_model.effects), NAME[:KEY=VALUE[:KEY=VALUE]] comma-separated:\n"
-                                   "  correlated_noise  sigma_z_fraction=1.0 (or sigma_m=...), length_px=3\n"
-                                   "  depth_bias        scale=0.99, offset_px=0.05, baseline_m=0.05\n"
-                                   "e.g. --sim-effects correlated_noise:length_px=5,depth_bias")
+                                   "sim effects (noise_model.effects), NAME[:KEY=VALUE[:KEY=VALUE]] comma-separated,\n"
+                                   "or a gap report (elevmap gap --json PATH): its selected effects as fitted:\n"
+                                   + effects_help() +
+                                   "\ne.g. --sim-effects correlated_noise:length_px=5,depth_bias  or  --sim-effects gap.json")
     p.add_argument("--scene", default="stairs", help="stairs, boxes, slope, rough or demo (default: stairs)")
     p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
-    p.add_argument("--sim-effects", default=None, metavar="NAMES", help="effects added to the simulated depth")
+    p.add_argument("--sim-effects", default=None, metavar="NAMES|GAP.json",
+                   help="effects added to the simulated depth, or a gap report's fitted effects")
     p.add_argument("--mappers", default=None, metavar="NAMES",
                    help="comma-separated subset of paper, constant, quadratic, anybotics_d435, paper_capped")
     p.add_argument("--cap", type=float, default=None, metavar="N_EFF",

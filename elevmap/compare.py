@@ -75,7 +75,7 @@ from .fusion import FusionParams
 from .mapper import Camera, Mapper
 from .pipeline import MappingConfig, map_error
 
-__all__ = ["MAPPERS", "SCENES", "DEFAULT_CAP", "REPORT_KEYS", "run_compare", "render_walk", "parse_effects",
+__all__ = ["MAPPERS", "SCENES", "DEFAULT_CAP", "REPORT_KEYS", "run_compare", "render_walk", "parse_effects", "effects_help",
            "parse_mappers", "format_table", "MapperSpec", "mapper_specs", "json_ready", "frames_digest"]
 
 #: Mappers in report order.
@@ -180,6 +180,20 @@ def _number(text: str, where: str):
     return v
 
 
+def effects_help() -> str:
+    """One line per effect of :data:`noise_model.effects.EFFECTS`: its name and default parameters."""
+    import inspect
+
+    lines = []
+    width = max(len(n) for n in EFFECTS)
+    for name, factory in EFFECTS.items():
+        params = [f"{k}={v.default!r}" if v.default is not None else f"{k}=..." for k, v in
+                  inspect.signature(factory).parameters.items()
+                  if k not in ("model",) and v.default is not inspect.Parameter.empty]
+        lines.append(f"  {name:{width}s}  {', '.join(params)}")
+    return "\n".join(lines)
+
+
 def parse_effects(spec) -> list[Effect]:
     """Effects from a ``--sim-effects`` string or a sequence of effects / names.
 
@@ -187,6 +201,9 @@ def parse_effects(spec) -> list[Effect]:
     optionally followed by ``:key=value`` overrides of its defaults, several separated by ``:`` or by
     commas: ``correlated_noise``, ``correlated_noise:length_px=5:sigma_z_fraction=0.5,depth_bias``,
     ``correlated_noise:length_px=5,sigma_z_fraction=0.5``. ``none`` or an empty string: no effect.
+    A path ending in ``.json``: the effects of a gap report (``elevmap gap --json``), with their
+    fitted parameters, in the simulator's canonical order (their pixel parameters are in the pixels
+    of the diagnosed stream: simulate the walk at that resolution).
 
     Returns
     -------
@@ -214,6 +231,10 @@ def parse_effects(spec) -> list[Effect]:
     text = spec.strip()
     if text.lower() in ("", "none"):
         return []
+    if text.lower().endswith(".json"):          # the effects a gap diagnosis selected and fitted
+        from noise_model.effects import canonical_order, effects_from_report
+
+        return canonical_order(effects_from_report(text))
     entries: list[tuple[str, dict]] = []
     for token in (t.strip() for t in text.split(",")):
         if not token:

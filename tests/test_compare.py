@@ -311,3 +311,22 @@ def test_json_is_required_and_outputs_are_checked_first(tmp_path, capsys):
     assert main(args + ["--rrd", str(tmp_path / "r.json")]) == 2
     assert "different files" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_sim_effects_from_a_gap_report(tmp_path):
+    # the effects a gap diagnosis selected, with their fitted parameters, drive the walk simulator
+    report = {"format": "d435-gap/1", "effects": [
+        {"name": "invalid_band", "params": {"margin_px": 3.0}},
+        {"name": "depth_bias", "params": {"scale": 0.995, "offset_px": 0.02}}]}
+    path = tmp_path / "gap.json"
+    path.write_text(json.dumps(report))
+    effects = parse_effects(str(path))
+    assert [e.name for e in effects] == ["depth_bias", "invalid_band"]          # the simulator's order
+    assert effects[0].params["scale"] == 0.995 and effects[1].params["margin_px"] == 3.0
+    out = tmp_path / "r.json"
+    assert main(["compare", "--scene", "boxes", "--frames", "3", "--mappers", "paper", "--sim-effects", str(path),
+                 "--json", str(out), "--no-progress"]) == 0
+    r = json.loads(out.read_text())
+    assert [e["name"] for e in r["sim_effects"]] == ["depth_bias", "invalid_band"]
+    with pytest.raises(ValueError, match="gap report"):
+        parse_effects(str(tmp_path / "missing.json"))
