@@ -102,6 +102,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+    p = sub.add_parser("gap", help="sim-to-real gap: where the paper's model misses real captures, which effect explains it",
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       description="Compare a real capture set (d435-captures/1) with the reference simulation of the\n"
+                                   "paper's model: WHERE (statistic x distance/angle/image cell/region, normalised by the\n"
+                                   "real-vs-real noise floor), WHICH effect explains it (forward selection on fit captures,\n"
+                                   "validated on held-out captures, ablation), HOW FAR the held-out gap shrinks.\n\n"
+                                   "  elevmap gap REAL_CAPTURES --json gap.json [--rrd gap.rrd] [--heldout IDS|auto|none]\n"
+                                   "  elevmap gap --selftest [--jobs 2]\n"
+                                   "  elevmap gap --realdata ../shared/realdata --json real.json")
+    p.add_argument("real", metavar="REAL_CAPTURES", nargs="?", help="capture-set folder (captures.json)")
+    p.add_argument("--json", metavar="PATH", help="write the report (d435-gap/1); with --selftest, the table")
+    p.add_argument("--rrd", metavar="PATH", help="write a rerun recording (bar charts, residual images)")
+    p.add_argument("--heldout", metavar="IDS|auto|none", default=None,
+                   help="held-out captures: comma-separated ids, auto (middle third of the distances per target "
+                        "kind; default) or none (validate on the fit captures; default with --realdata)")
+    p.add_argument("--effects", metavar="NAMES", default=None,
+                   help="comma-separated candidate effects (default: all); with --selftest, the effects to hide")
+    p.add_argument("--seed", type=int, default=0, help="seed of simulations, splits and bootstrap (default: 0)")
+    p.add_argument("--selftest", action="store_true", help="hide each effect in simulated data and find it")
+    p.add_argument("--jobs", type=int, default=1, help="processes for --selftest (default: 1)")
+    p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single frames of DIR (shared/realdata)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
     from .protocol import PROTOCOL
 
     p = sub.add_parser("characterize", help="your own D435 noise model from a capture set (the paper's method)",
@@ -323,6 +346,35 @@ def _cmd_compare(args) -> int:
     return 0
 
 
+def _cmd_gap(args) -> int:
+    from .gap import format_selftest, format_summary, run_gap, run_realdata, run_selftest
+
+    if args.selftest:
+        if args.real or args.realdata or args.rrd:
+            raise ValueError("--selftest takes no REAL_CAPTURES, --realdata or --rrd")
+        res = run_selftest(effects=args.effects, seed=args.seed, show_progress=not args.no_progress,
+                           json_path=args.json, n_jobs=args.jobs)
+        print(format_selftest(res))
+        return 0 if res["passed"] else 1
+    if args.json and args.rrd and args.json == args.rrd:
+        raise ValueError("--json and --rrd must be different files")
+    if args.realdata:
+        if args.real:
+            raise ValueError("give REAL_CAPTURES or --realdata, not both")
+        report = run_realdata(args.realdata, json_path=args.json, rrd_path=args.rrd, effects=args.effects,
+                              seed=args.seed, heldout=args.heldout or "none", show_progress=not args.no_progress)
+    else:
+        if not args.real:
+            raise ValueError("give REAL_CAPTURES (a capture-set folder), --realdata DIR or --selftest")
+        report = run_gap(args.real, json_path=args.json, rrd_path=args.rrd, heldout=args.heldout or "auto",
+                         effects=args.effects, seed=args.seed, show_progress=not args.no_progress)
+    print(format_summary(report))
+    if args.json or args.rrd:
+        print("wrote " + " and ".join(p for p in (args.json, args.rrd) if p)
+              + (f"; open the recording with: .venv/bin/rerun {args.rrd}" if args.rrd else ""))
+    return 0
+
+
 def _cmd_characterize(args) -> int:
     from .characterize import format_summary, run_characterize
 
@@ -333,7 +385,7 @@ def _cmd_characterize(args) -> int:
     return 0 if report["fit"] is not None else 1
 
 
-COMMANDS = {"characterize": _cmd_characterize, "compare": _cmd_compare, "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
+COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "compare": _cmd_compare, "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
 
 
 def main(argv=None) -> int:
