@@ -43,3 +43,15 @@ def test_record_walk_example_refuses_to_overwrite(tmp_path, monkeypatch):
     runpy.run_path(str(ROOT / "examples" / "record_walk.py"), run_name="__main__")
     assert len(list(RrdSource(out))) == 2
     assert np.isfinite(out.stat().st_size)
+
+
+def test_sim_to_real_map_gap_example(capsys):
+    # the gap's fitted effects, plugged into the walk simulator, bring the simulated map's statistics
+    # to those of the "real" one (seeded: the same numbers every run)
+    ns = runpy.run_path(str(ROOT / "examples" / "sim_to_real_map_gap.py"))
+    out = ns["main"](["--frames", "10", "--capture-frames", "8"])
+    assert {e["name"] for e in out["fitted"]} == {name for name, _ in ns["HIDDEN"]}
+    assert out["capture_shrink_heldout"] > 0.6
+    sig = out["map"]["mean_sigma_m"]
+    assert sig["gap_fitted"] < 0.5 * sig["gap_reference"]
+    assert "shrink" in capsys.readouterr().out
