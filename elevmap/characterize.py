@@ -31,7 +31,7 @@ import noise_model as nm
 from noise_model import characterize as ch
 from noise_model.d435 import D435
 
-from .fileio import write_json_atomic
+from .fileio import json_ready, write_json_atomic
 from .protocol import PROTOCOL  # the recording protocol (also in ``elevmap characterize --help``)
 
 __all__ = ["run_characterize", "characterize_capture", "format_summary", "figure_series", "plane_distance_panels",
@@ -599,7 +599,7 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
             _write_rrd(report, records, rrd_path, spawn)
             report["rrd"] = None if rrd_path is None else str(rrd_path)
         if json_path is not None:
-            write_json_atomic(json_path, _json_ready(report))
+            write_json_atomic(json_path, json_ready(report))
     except BaseException:
         for p in created:
             p.unlink(missing_ok=True)
@@ -742,17 +742,3 @@ def _summary_markdown(report: dict) -> str:
     return "\n".join(lines)
 
 
-def _json_ready(obj):
-    if isinstance(obj, dict):
-        return {str(k): _json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_ready(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj

@@ -71,6 +71,7 @@ from noise_model.effects import EFFECTS, Effect, make_effect
 
 from .elevation_map import ElevationMap
 from .frame import Frame
+from .fileio import json_ready
 from .fusion import FusionParams
 from .mapper import Camera, Mapper
 from .pipeline import MappingConfig, map_error
@@ -560,22 +561,6 @@ def _common_scores(maps: dict, truth) -> dict:
 # ---------------------------------------------------------------------------------------------
 # output
 # ---------------------------------------------------------------------------------------------
-def json_ready(obj):
-    """The report with NaN/inf as None and NumPy scalars as Python numbers (strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_ready(v) for v in obj]
-    if isinstance(obj, (np.floating, float)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    return obj
-
-
 def _fmt(v, scale=1.0, digits=1):
     if v is None or not math.isfinite(v):
         return "-"

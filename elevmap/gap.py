@@ -41,7 +41,7 @@ from noise_model import gap as G
 from noise_model.capture_data import CaptureData, CaptureGeometry, simulate_capture
 from noise_model.d435 import D435, SensorModel
 
-from .fileio import write_json_atomic
+from .fileio import json_ready, write_json_atomic
 
 __all__ = ["FORMAT", "run_gap", "run_selftest", "run_realdata", "diagnose", "format_summary", "format_selftest",
            "parse_effect_names", "split_captures", "auto_heldout", "CaptureSimulator", "EffectFitter",
@@ -227,26 +227,6 @@ def gap_capture_of(data: CaptureData | CaptureGeometry, model: SensorModel = D43
 # ---------------------------------------------------------------------------------------------
 # the diagnosis
 # ---------------------------------------------------------------------------------------------
-def json_ready(obj):
-    """Strict-JSON copy: NaN/inf -> None, NumPy scalars and arrays -> Python, tuples -> lists."""
-    if isinstance(obj, dict):
-        return {str(k): json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return json_ready(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def _where(entries: list, limit: int = MAX_WHERE, pad: int = 20) -> list:
     pos = [e for e in entries if e["gap"] > 0]
     if len(pos) < pad:

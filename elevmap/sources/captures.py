@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..fileio import atomic_output, write_json_atomic
+from ..fileio import atomic_output, json_ready, write_json_atomic
 from ..frame import Frame
 
 __all__ = ["FORMAT", "Capture", "CaptureSet", "read_capture_set", "write_capture_set", "CAPTURES_JSON"]
@@ -464,21 +464,6 @@ def _from_dict(doc, folder: Path, where: str, *, check_files: bool) -> CaptureSe
     return CaptureSet(folder, camera, caps, extra)
 
 
-def _plain(obj):
-    """JSON-ready copy: numpy scalars and arrays to Python numbers and lists."""
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False, extra: dict | None = None,
                       ) -> CaptureSet:
     """Write a capture set: captures.json and one .npy per capture, each file atomically.
@@ -516,7 +501,7 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
     """
     folder = Path(folder)
     where = f"{folder / CAPTURES_JSON}"
-    camera = _plain(dict(camera)) if isinstance(camera, dict) else camera
+    camera = json_ready(dict(camera)) if isinstance(camera, dict) else camera
     camera = _check_camera(camera, where)
     if isinstance(captures, (str, bytes)) or not hasattr(captures, "__iter__"):
         raise ValueError("captures must be a list of (capture dict, depth array) pairs")
@@ -528,7 +513,7 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
             raise ValueError(f"captures[{k}] must be a (capture dict, depth array) pair") from None
         if not isinstance(d, dict):
             raise ValueError(f"captures[{k}]: the capture must be a dict, got {type(d).__name__}")
-        d = _plain(dict(d))
+        d = json_ready(dict(d))
         cid = d.get("id")
         if isinstance(cid, str) and cid:
             if "/" in cid or "\\" in cid or cid.startswith("."):
@@ -565,7 +550,7 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
                              "(an existing capture set?); pass overwrite=True to replace them")
     created = [p for p in targets if not p.exists()]
     doc = {"format": FORMAT, "camera": camera, "captures": [c.to_dict() for c in entries],
-           **_plain(dict(extra or {}))}
+           **json_ready(dict(extra or {}))}
     try:
         json.dumps(doc)
     except (TypeError, ValueError) as exc:
