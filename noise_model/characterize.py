@@ -36,7 +36,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import optimize, stats
 
-from .checks import check_intrinsics, check_positive_scalar
+from .checks import check_intrinsics, check_points, check_positive_scalar
 from .d435 import D435, SensorModel, expected_rms_error
 from .sim import target_rotation
 
@@ -140,14 +140,8 @@ class PlaneFit:
 
 
 def _check_points3(points, name="points_cam", min_points=3) -> np.ndarray:
-    p = np.asarray(points)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (M, 3), got {p.shape}")
-    if not np.issubdtype(p.dtype, np.number):
-        raise ValueError(f"{name} must be real numbers [m], got dtype {p.dtype}")
-    p = p.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(p)):
-        raise ValueError(f"{name} has non-finite rows; drop invalid pixels first")
+    """:func:`noise_model.checks.check_points`, and at least ``min_points`` of them (a plane needs 3)."""
+    p = check_points(points, name)
     if p.shape[0] < min_points:
         raise ValueError(f"{name} needs at least {min_points} points for a plane, got {p.shape[0]}")
     return p
