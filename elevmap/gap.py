@@ -38,7 +38,7 @@ import numpy as np
 
 from noise_model import effects as E
 from noise_model import gap as G
-from noise_model.capture_data import CaptureData, CaptureGeometry, simulate_capture
+from noise_model.capture_data import CaptureData, CaptureGeometry, check_captures, simulate_capture
 from noise_model.d435 import D435, SensorModel
 
 from .fileio import json_ready, write_json_atomic
@@ -197,8 +197,12 @@ class CaptureSimulator:
 class EffectFitter:
     """``fit(name, base_effects) -> params`` on the fit captures (base simulations cached per base model)."""
 
-    def __init__(self, fit_real: Sequence[CaptureData], model: SensorModel = D435, seed: int = 0):
+    def __init__(self, fit_real: Sequence[CaptureData], model: SensorModel = D435, seed: int = 0,
+                 rois: dict | None = None):
         self.real, self.model, self.seed = list(fit_real), model, int(seed)
+        ids = {c.id for c in self.real}
+        # the fits see only each capture's region of interest, as the statistics do
+        self.rois = None if not rois else {k: v for k, v in rois.items() if k in ids}
         self._cache: dict = {}
         self._base_key = None
 
@@ -208,7 +212,8 @@ class EffectFitter:
             self._cache, self._base_key = {}, key
         base = [E.make_effect(n, **p) for n, p in base_effects]
         try:
-            params = E.fit_effect(name, self.real, self.model, base, seed=self.seed, cache=self._cache)
+            params = E.fit_effect(name, self.real, self.model, base, seed=self.seed, cache=self._cache,
+                                  rois=self.rois)
         except (ArithmeticError, np.linalg.LinAlgError, IndexError) as exc:   # a fit that cannot cope
             raise ValueError(f"fit of {name} failed on these captures ({type(exc).__name__}: {exc})") from exc
         return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in params.items()}
@@ -272,15 +277,7 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
     from tqdm import tqdm
 
     t0 = time.perf_counter()
-    real = list(real)
-    if not real:
-        raise ValueError("no real captures")
-    for k, c in enumerate(real):
-        if not isinstance(c, CaptureData):
-            raise ValueError(f"real[{k}] must be a noise_model.capture_data.CaptureData, got {type(c).__name__}")
-    ids = [c.id for c in real]
-    if len(set(ids)) != len(ids):
-        raise ValueError("real captures must have distinct ids")
+    real = check_captures(real)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
         raise ValueError(f"seed must be an integer, got {seed!r}")
     names = parse_effect_names(effects)
@@ -304,7 +301,7 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
 
     try:
         dg = G.Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
-                         CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed),
+                         CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed, rois),
                          binning=binning or G.Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
                          config=config or G.SelectionConfig(), progress=progress)
         res = dg.run(candidates)

@@ -64,7 +64,7 @@ from .checks import check_intrinsics, check_positive_scalar
 from .d435 import D435, SensorModel
 from .sim import render_planar_target, target_rotation
 
-__all__ = ["CaptureGeometry", "CaptureData", "simulate_capture", "REGION_NONE", "REGION_INTERIOR",
+__all__ = ["CaptureGeometry", "CaptureData", "simulate_capture", "check_captures", "REGION_NONE", "REGION_INTERIOR",
            "REGION_EDGE_LEFT", "REGION_EDGE_RIGHT", "REGION_LEFT_BAND", "REGION_BACKGROUND", "REGION_NAMES",
            "LEFT_BAND_MARGIN_PX_424", "EDGE_PX_424", "LATERAL_EDGE_SIGMAS"]
 
@@ -464,6 +464,30 @@ class _RecordReference:
         ro.flags.writeable = False
         context["z_ref"] = ro
         return z
+
+
+def check_captures(captures, name: str = "real", *, allow_empty: bool = False) -> list:
+    """Validate real captures: a CaptureData or a sequence of them, with distinct ids.
+
+    Returns
+    -------
+    list of CaptureData
+
+    Raises
+    ------
+    ValueError
+        An item is not a CaptureData, two share an id, or (unless ``allow_empty``) there is none.
+    """
+    items = [captures] if isinstance(captures, CaptureData) else list(captures)
+    if not items and not allow_empty:
+        raise ValueError(f"no {name} captures")
+    for k, c in enumerate(items):
+        if not isinstance(c, CaptureData):
+            raise ValueError(f"{name}[{k}] must be a noise_model.capture_data.CaptureData, got {type(c).__name__}")
+    ids = [c.id for c in items]
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"{name} captures must have distinct ids")
+    return items
 
 
 def simulate_capture(geometry: CaptureGeometry, n_frames: int, rng: np.random.Generator, model: SensorModel = D435,

@@ -92,8 +92,19 @@ Registry
 --------
 :data:`EFFECTS` (name -> factory), :func:`make_effect`, :data:`PARAM_RANGES` (the ranges the gap
 selftest draws from), :data:`INTEGER_PARAMS`, :func:`draw_params`, :data:`FIT_TOLERANCE` (how close
-:func:`fit_effect` recovers each parameter; :func:`within_tolerance`), :data:`NEEDS` (capture kinds a
-fit uses), :func:`usable_captures`, :func:`canonical_order`, :func:`effects_from_report`.
+:func:`fit_effect` recovers each parameter; :func:`within_tolerance`; :data:`FIT_TOLERANCE_SINGLE_FRAME`
+on captures of one frame), :data:`NEEDS` (capture kinds a fit uses), :func:`usable_captures`,
+:func:`canonical_order`, :func:`effects_from_report`; :func:`disparity_lattice` (the disparity lattice
+of real captures and the f B it is found at).
+
+Fits on single frames
+---------------------
+:func:`fit_effect` works on captures of any number of frames, one included (the genuine single frames
+of ``elevmap gap --realdata``): temporal statistics give way to the frame's spatial statistics about
+the target's best plane, and parameters the captures cannot determine are fixed as each fit's
+docstring says (summary in the comment of :data:`NEEDS`). A fit either returns parameters the factory
+accepts or raises ValueError saying why it cannot estimate them. ``rois`` restricts the fits to the
+pixels that show the target.
 """
 
 from __future__ import annotations
@@ -113,7 +124,8 @@ from .d435 import D435, SensorModel, _axial_sigma_unchecked
 __all__ = ["Effect", "gaussian_random_field", "EFFECTS", "make_effect", "ORDER", "canonical_order",
            "PARAM_RANGES", "INTEGER_PARAMS", "draw_params", "FIT_TOLERANCE", "within_tolerance", "NEEDS",
            "usable_captures", "fit_effect", "effects_from_report", "CORRELATED_NOISE_DEFAULTS",
-           "DEPTH_BIAS_DEFAULTS", "EDGE_JUMP_PX",
+           "DEPTH_BIAS_DEFAULTS", "EDGE_JUMP_PX", "disparity_lattice", "LATTICE_FB_RANGE",
+           "FIT_TOLERANCE_SINGLE_FRAME",
            "axial_refit", "depth_bias", "static_pattern", "disparity_noise", "correlated_noise", "outliers",
            "edge_fattening", "flying_pixels", "disparity_quantization", "invalid_band", "dropout"]
 
@@ -1058,15 +1070,45 @@ FIT_TOLERANCE = {
     "outliers": {"fraction": ("rel", 0.1), "sigma_px": ("rel", 0.1)},
     "axial_refit": {"c0": ("abs", 0.0002), "c1": ("abs", 0.0003), "c2": ("abs", 0.0002), "c_theta": ("abs", 0.001)},
 }
+#: :data:`FIT_TOLERANCE` when every capture has a single frame (same captures otherwise: 8 walls or
+#: 8 boards x 1 frame at 424 x 240), ~3 times the largest error over 10 random draws. What one frame
+#: cannot give is not in it: the fits of disparity_noise, correlated_noise, static_pattern and
+#: axial_refit read the frame's excess *spatial* statistics, so they recover their parameter when the
+#: data hold that effect alone, but cannot tell it from the others of the four (temporal vs static:
+#: see each fit). Captures of 2 frames meet :data:`FIT_TOLERANCE`.
+FIT_TOLERANCE_SINGLE_FRAME = {
+    "disparity_noise": {"s_px": ("rel", 0.03)},
+    "disparity_quantization": {"subpixel_bits": ("abs", 0)},
+    "depth_bias": {"scale": ("abs", 0.002), "offset_px": ("abs", 0.02)},
+    "invalid_band": {"margin_px": ("abs", 0.5)},
+    "dropout": {"p_1m": ("rel", 0.06), "k_z": ("abs", 0.07), "k_theta": ("abs", 0.3), "length_px": ("rel", 0.4)},
+    "correlated_noise": {"sigma_z_fraction": ("rel", 0.03), "length_px": ("rel", 0.06)},
+    "static_pattern": {"sigma_px": ("rel", 0.05), "length_px": ("rel", 0.16)},
+    "flying_pixels": {"fraction": ("rel", 0.1), "band_px": ("abs", 0)},
+    "edge_fattening": {"width_px": ("abs", 0.15)},
+    "outliers": {"fraction": ("rel", 0.2), "sigma_px": ("rel", 0.1)},
+    "axial_refit": {"c0": ("abs", 0.0003), "c1": ("abs", 0.0005), "c2": ("abs", 0.0003), "c_theta": ("abs", 0.0004)},
+}
 #: Captures each fit uses: "wall" (a wall, all of it but the left band), "board" (a board's interior),
 #: "board+background" (a board before a background wall: its left and right edges). A fit uses every
 #: capture of the kinds listed (:func:`usable_captures`) and raises ValueError when there is none.
 #: Also needed: disparity_quantization depth where the 2^-bits lattice is >= 2 depth units apart (at
-#: 424 x 240 and 1 mm units: z >= 0.82 m for 5 bits, 1.16 m for 6); depth_bias two distances or more;
+#: 424 x 240 and 1 mm units: z >= 0.82 m for 5 bits, 1.16 m for 6); depth_bias distances spanning
+#: >= 1.5x to tell the scale from the offset;
 #: axial_refit distances from ~0.5 to ~2 m and angles from 0 to >= 45 deg (the angle term); dropout
 #: angles >= 45 deg too (k_theta: with boards at 0 and 30 deg alone it is off by up to 0.3);
 #: static_pattern large interiors (walls; a board's interior holds few pattern cells: ~15 % errors);
 #: invalid_band any planar targets at several distances.
+#: Single frames (or few): every fit runs on captures of one frame (see :func:`fit_effect`).
+#: Assumptions then: disparity_noise, axial_refit take the frame's spatial spread about the target's
+#: plane as per-frame noise, correlated_noise and static_pattern take its whole excess spatial
+#: correlation as theirs (static vs per-frame is not identifiable from one frame). Too narrow a design
+#: fixes what it cannot determine: depth_bias with distances spanning < 1.5x fits a scale alone
+#: (offset_px 0); dropout fixes k_z = 0 with distances spanning < 1.5x and k_theta = 0 with angles
+#: spanning < 25 deg; axial_refit fits one factor on the paper's coefficients (plus c_theta with
+#: angles, or c0..c2 with distances spanning >= 2x). Captures whose target does not fill the image
+#: (a plane fitted to a region of a frame) need ``rois`` in :func:`fit_effect`, or the fits read the
+#: other surfaces as the target's errors.
 NEEDS = {
     "disparity_noise": ("wall", "board"),
     "disparity_quantization": ("wall", "board"),
@@ -1095,8 +1137,10 @@ def draw_params(name: str, rng: np.random.Generator) -> dict:
     return out
 
 
-def within_tolerance(name: str, true_params: Mapping, fitted_params: Mapping) -> tuple[bool, dict]:
-    """Whether a fit recovered the parameters within :data:`FIT_TOLERANCE`.
+def within_tolerance(name: str, true_params: Mapping, fitted_params: Mapping,
+                     tolerance: Mapping | None = None) -> tuple[bool, dict]:
+    """Whether a fit recovered the parameters within :data:`FIT_TOLERANCE` (or ``tolerance``, a table
+    of the same form, e.g. :data:`FIT_TOLERANCE_SINGLE_FRAME`).
 
     Returns
     -------
@@ -1104,10 +1148,13 @@ def within_tolerance(name: str, true_params: Mapping, fitted_params: Mapping) ->
     errors : dict
         param -> (|fit - true|, allowed) for every parameter of the tolerance.
     """
-    if name not in FIT_TOLERANCE:
-        raise ValueError(f"unknown effect {name!r}; known: {', '.join(FIT_TOLERANCE)}")
+    table = FIT_TOLERANCE if tolerance is None else tolerance
+    if not isinstance(table, Mapping):
+        raise ValueError(f"tolerance must be a mapping like FIT_TOLERANCE, got {type(table).__name__}")
+    if name not in table:
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(table)}")
     errors, ok = {}, True
-    for k, (kind, tol) in FIT_TOLERANCE[name].items():
+    for k, (kind, tol) in table[name].items():
         if k not in true_params or k not in fitted_params:
             raise ValueError(f"{name}: parameter {k!r} missing from the true or the fitted parameters")
         err = abs(float(fitted_params[k]) - float(true_params[k]))
@@ -1139,7 +1186,7 @@ def usable_captures(name: str, captures: Sequence) -> list:
 # fits
 # =============================================================================================
 def fit_effect(name: str, real: Sequence, model: SensorModel = D435, base_effects=(), *, seed: int = 0,
-               cache: dict | None = None) -> dict:
+               cache: dict | None = None, rois: Mapping | None = None) -> dict:
     """Estimate the parameters of effect ``name`` from real captures.
 
     Every fit compares a statistic the effect changes between the real captures and the *base*
@@ -1163,31 +1210,42 @@ def fit_effect(name: str, real: Sequence, model: SensorModel = D435, base_effect
         Seed of the base simulation.
     cache : dict, optional
         Shared between calls (e.g. one forward-selection round) to reuse base simulations.
+    rois : mapping, optional
+        Capture id -> boolean image (H, W) of the pixels that show the target (a region of interest):
+        the fits use only those pixels (captures without an entry: all of the target's pixels). For
+        captures whose target does not fill the image, e.g. a plane fitted to a region of a genuine
+        frame: the other pixels show other surfaces, which every statistic would read as the target's
+        errors. Ids of captures not in ``real`` are ignored.
 
     Returns
     -------
     dict
-        Parameters for ``make_effect(name, **params)``.
+        Parameters for ``make_effect(name, **params)``: finite and inside the factory's ranges (an
+        estimate outside them is clipped to them; integers are rounded).
+
+    Single frames and few frames
+    ----------------------------
+    Every fit is defined on captures of one frame or a few: where its statistic is temporal (the
+    variance over frames of disparity_noise and axial_refit, the frame-to-frame residual of
+    correlated_noise, the temporal mean of static_pattern), a capture of one frame uses the spatial
+    statistic of its frame about the target's best plane instead, and what one frame cannot separate is
+    stated in the fit's docstring (static vs per-frame noise, above all); where the captures do not
+    span what a parameter needs (one distance for a depth scale vs a disparity offset, a narrow range
+    of distances or angles for the dropout's and the axial noise's slopes) the fit estimates what they
+    determine and fixes the rest as its docstring says.
 
     Raises
     ------
     ValueError
-        Unknown name, no usable capture, bad input.
+        Unknown name, no usable capture, bad input, or a fit that cannot be estimated from these
+        captures (the message says why; arithmetic failures of a fit are reported the same way).
     """
-    from .capture_data import CaptureData
+    from .capture_data import check_captures
 
     if name not in _FITS:
         raise ValueError(f"unknown effect {name!r}; known: {', '.join(_FITS)}")
     _check_model(model)
-    if isinstance(real, CaptureData):
-        real = [real]
-    real = list(real)
-    for k, c in enumerate(real):
-        if not isinstance(c, CaptureData):
-            raise ValueError(f"real[{k}] must be a noise_model.capture_data.CaptureData, got {type(c).__name__}")
-    ids = [c.id for c in real]
-    if len(set(ids)) != len(ids):
-        raise ValueError("real captures must have distinct ids")
+    real = check_captures(real, allow_empty=True)
     base_effects = list(base_effects or ())
     for k, e in enumerate(base_effects):
         if not callable(e):
@@ -1196,16 +1254,67 @@ def fit_effect(name: str, real: Sequence, model: SensorModel = D435, base_effect
         raise ValueError(f"seed must be an integer, got {seed!r}")
     if cache is not None and not isinstance(cache, dict):
         raise ValueError(f"cache must be a dict or None, got {type(cache).__name__}")
+    rois = _check_rois(rois, real)
     use = usable_captures(name, real)
     if not use:
         raise ValueError(f"fit of {name} needs captures of kind {' or '.join(NEEDS[name])}; none given")
+    if rois:
+        use = [c for c in use if c.id not in rois or rois[c.id].any()]
+        if not use:
+            raise ValueError(f"fit of {name}: the regions of interest of its captures are empty")
     base = _base_sims(use, model, base_effects, int(seed), {} if cache is None else cache)
-    params = _FITS[name](use, base, model, base_effects=base_effects, seed=int(seed),
-                         cache={} if cache is None else cache)
+    try:
+        with np.errstate(all="ignore"):
+            params = _FITS[name](use, base, model, base_effects=base_effects, seed=int(seed),
+                                 cache={} if cache is None else cache, rois=rois)
+    except (ArithmeticError, np.linalg.LinAlgError, IndexError) as exc:
+        raise ValueError(f"fit of {name} failed on these captures ({type(exc).__name__}: {exc})") from exc
+    return _valid_params(name, params)
+
+
+def _check_rois(rois, real) -> dict:
+    """{id: bool (H, W)} for the captures of ``real`` that have a region of interest (checked)."""
+    if rois is None:
+        return {}
+    if not isinstance(rois, Mapping):
+        raise ValueError(f"rois must be a mapping capture id -> boolean image, got {type(rois).__name__}")
+    out = {}
+    for c in real:
+        if c.id not in rois or rois[c.id] is None:
+            continue
+        r = np.asarray(rois[c.id])
+        g = c.geometry
+        if r.dtype != bool or r.shape != (g.height, g.width):
+            raise ValueError(f"rois[{c.id!r}] must be a boolean image of shape ({g.height}, {g.width}), "
+                             f"got {r.dtype} {r.shape}")
+        out[c.id] = r
+    return out
+
+
+def _valid_params(name: str, params: dict) -> dict:
+    """The fit's parameters made valid for the factory: finite (else ValueError naming the parameter),
+    clipped to :data:`_VALID` and the factories' ranges, integers rounded; then the effect is built
+    once, so that a parameter the factory refuses is a ValueError of the fit, never of a later step."""
+    out = {}
+    for k, v in params.items():
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise ValueError(f"fit of {name}: parameter {k} is not a number ({v!r})")
+        if not math.isfinite(float(v)):
+            raise ValueError(f"fit of {name}: parameter {k} could not be estimated from these captures "
+                             f"(the estimate is {float(v)})")
+        out[k] = v
     for k, (lo, hi) in _VALID.get(name, {}).items():          # within the factory's own ranges
-        if k in params:
-            params[k] = float(min(max(params[k], lo), hi))
-    return params
+        if k in out:
+            out[k] = float(min(max(float(out[k]), lo), hi))
+    for k in INTEGER_PARAMS.get(name, ()):
+        if k in out:
+            lo, hi = _INT_VALID.get((name, k), (0, 2 ** 31 - 1))
+            out[k] = int(min(max(int(math.floor(float(out[k]) + 0.5)), lo), hi))
+    try:
+        make_effect(name, **out)
+    except ValueError as exc:
+        raise ValueError(f"fit of {name} returned parameters the effect refuses: {exc}") from None
+    return out
 
 
 #: The factories' valid ranges that a fit could leave (ill-determined parameters of a null effect).
@@ -1218,6 +1327,9 @@ _VALID = {"disparity_noise": {"s_px": (1e-6, 5.0)}, "depth_bias": {"scale": (0.5
           "flying_pixels": {"fraction": (0.0, 1.0)}, "edge_fattening": {"width_px": (0.0, 20.0)},
           "outliers": {"fraction": (1e-9, 0.5), "sigma_px": (1e-6, 100.0)},
           "axial_refit": {"c0": (1e-9, 0.05), "c1": (0.0, 0.05), "c2": (0.0, 0.05), "c_theta": (0.0, 1.0)}}
+#: The factories' ranges of the integer parameters.
+_INT_VALID = {("disparity_quantization", "subpixel_bits"): (0, 12), ("flying_pixels", "band_px"): (0, 10),
+              ("static_pattern", "seed"): (0, 2 ** 31 - 1)}
 
 
 def _base_sims(real, model, base_effects, seed, cache) -> list:
@@ -1252,9 +1364,16 @@ def _nominal(g, model):
 FIT_MAX_Z_M = 10.0
 
 
-def _interior(g, model):
+def _roi(rois, g):
+    """The capture's region of interest (bool (H, W)) or None."""
+    return rois.get(g.id) if rois else None
+
+
+def _interior(g, model, roi=None):
     """Interior pixels of the target (region INTERIOR) with z_true <= FIT_MAX_Z_M, on a board also
-    4 lateral sigmas from its left and right edges (cached)."""
+    4 lateral sigmas from its left and right edges (cached); only those in ``roi`` when given."""
+    if roi is not None:
+        return _interior(g, model) & roi
     from .capture_data import REGION_INTERIOR
 
     key = ("fit_interior", float(model.sigma_L), float(model.sigma_R))
@@ -1271,12 +1390,12 @@ def _interior(g, model):
     return g._cache[key]
 
 
-def _robust_temporal_var(x, scale=None):
+def _robust_temporal_var(x, scale=None, min_count: int = 3):
     """Per-pixel temporal variance (ddof 1) of x (F, N), NaN = missing, after dropping values more than
     6 robust sigmas from the pixel's mean (outliers), in two passes. The robust sigma of a pixel is
     ``scale`` (N,) (its expected noise, e.g. the model's; 1 if None) times the median absolute
     deviation of the residuals divided by their scales, pooled over the pixels. Returns
-    (var (N,), count (N,)); var is NaN where fewer than 3 values remain."""
+    (var (N,), count (N,)); var is NaN where fewer than ``min_count`` (>= 2) values remain."""
     v = np.isfinite(x)
     x0 = np.where(v, x, 0.0)
     n = v.sum(axis=0)
@@ -1298,8 +1417,65 @@ def _robust_temporal_var(x, scale=None):
     with np.errstate(invalid="ignore", divide="ignore"):
         m2 = xk.sum(axis=0) / n2
         var = np.where(keep, (x0 - m2) ** 2, 0.0).sum(axis=0) / np.maximum(n2 - 1, 1)
-    var[n2 < 3] = np.nan
+    var[n2 < max(int(min_count), 2)] = np.nan
     return var, n2
+
+
+def _temporal_min_count(n_frames: int) -> int:
+    """Values a pixel needs for its temporal variance: 3, or every frame of a 2-frame capture."""
+    return 3 if n_frames >= 3 else 2
+
+
+def _plane_residual(d, m, scale=None):
+    """One frame's disparity d (H, W) [px] minus its best plane a + b u + c v over the mask's pixels with
+    data, fitted by least squares, then refitted (twice at most) without the pixels more than 6 robust
+    sigmas from the plane (outliers; robust sigma: ``scale`` (H, W) times 1.4826 MAD of r / scale).
+
+    A plane target's true disparity is affine in (u, v), and so is any depth bias's image of it (a
+    scale and a disparity offset), so the residual holds the frame's noise and patterns only. Returns
+    (r (H, W) [px] with NaN outside the mask or without data, plane (H, W) [px] over the whole image),
+    or None when fewer than 50 pixels have data.
+    """
+    ok = m & np.isfinite(d)
+    vv, uu = np.nonzero(ok)
+    if vv.size < 50:
+        return None
+    A = np.column_stack([np.ones(vv.size), uu, vv]).astype(np.float64)
+    y = d[ok]
+    sc = np.ones(vv.size) if scale is None else np.where(scale[ok] > 0, scale[ok], 1.0)
+    coef = np.linalg.lstsq(A, y, rcond=None)[0]
+    for _ in range(2):
+        r = (y - A @ coef) / sc
+        mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        if not mad > 0:
+            break
+        keep = np.abs(r - np.median(r)) <= 6.0 * mad
+        if keep.sum() < 50 or keep.all():
+            break
+        coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
+    H, W = d.shape
+    plane = coef[0] + coef[1] * np.arange(W)[None, :] + coef[2] * np.arange(H)[:, None]
+    out = np.full(d.shape, np.nan)
+    out[ok] = y - A @ coef
+    return out, plane
+
+
+def _robust_mean_square(r, scale=None):
+    """Mean of r^2 (N,) over the values within 6 robust sigmas of 0 (robust sigma: ``scale`` (N,) times
+    1.4826 MAD of r / scale), the spatial counterpart of :func:`_robust_temporal_var`; returns
+    (mean square, kept (N,) bool). NaN values are left out."""
+    r = np.asarray(r, dtype=np.float64)
+    v = np.isfinite(r)
+    sc = np.ones(r.shape) if scale is None else np.where(np.asarray(scale) > 0, np.asarray(scale), 1.0)
+    if not v.any():
+        return float("nan"), v
+    a = np.abs(r[v] / sc[v])
+    s = 1.4826 * float(np.median(a))
+    if not s > 0:
+        s = float(np.std(a)) or 1.0
+    keep = np.zeros(r.shape, dtype=bool)
+    keep[v] = a <= 6.0 * s
+    return float(np.mean(r[keep] ** 2)) if keep.any() else float("nan"), keep
 
 
 def _sigma_ref_px(g, model, mask):
@@ -1312,11 +1488,14 @@ def _sigma_ref_px(g, model, mask):
 _MAX_SAMPLE_PX = 30_000
 
 
-def _sample_mask(g, model, max_px: int = _MAX_SAMPLE_PX):
-    """The interior pixels of a capture, thinned by a fixed stride to at most ``max_px`` (cached)."""
+def _sample_mask(g, model, max_px: int = _MAX_SAMPLE_PX, roi=None):
+    """The interior pixels of a capture (those in ``roi`` when given), thinned by a fixed stride to at
+    most ``max_px`` (cached)."""
     key = ("fit_sample", float(model.sigma_L), float(model.sigma_R), int(max_px))
+    if roi is not None:
+        key = key + (zlib.crc32(np.packbits(roi).tobytes()),)
     if key not in g._cache:
-        m = _interior(g, model)
+        m = _interior(g, model, roi)
         idx = np.flatnonzero(m)
         if idx.size > max_px:
             idx = idx[:: int(math.ceil(idx.size / max_px))]
@@ -1332,31 +1511,57 @@ def _pixels(c, mask):
 
 
 # ---- disparity_noise ---------------------------------------------------------------------------
-def _fit_disparity_noise(real, base, model, **_):
+def _fit_disparity_noise(real, base, model, rois=None, **_):
     """Method of moments on the temporal variance in disparity units.
 
     The effect adds an independent N(0, s^2) to each pixel's disparity every frame, so the per-pixel
     temporal variance of d = f B / z grows by s^2 at every distance and angle. Per capture (interior
     pixels), v_real - v_base estimates s^2 (robust two-pass variance, :func:`_robust_temporal_var`);
-    captures are combined with the inverse variance of that estimate, w ~ N / (v_base + s^2)^2
+    captures are combined with the inverse variance of that estimate, w ~ N (F - 1) / (v_base + s^2)^2
     (iterated), so far and grazing captures, whose reference noise is large, count little.
+
+    A capture of one frame has no temporal variance: its frame's spatial variance about the target's
+    best plane in disparity (:func:`_plane_residual`, :func:`_robust_mean_square`; weight N) stands in.
+    One frame cannot tell noise that changes every frame from a static pattern or a correlated field
+    (static_pattern, correlated_noise): their excess spatial variance is attributed to s too, so on
+    single frames s is the excess disparity spread of a frame, an upper bound of the temporal part.
+    Captures of two frames use both (a pixel needs its two values).
     """
     vr, vb, n = [], [], []
     for c, b in zip(real, base):
-        m = _sample_mask(c.geometry, model)
-        fb = c.geometry.fb_px_m
-        zt = _nominal(c.geometry, model)[0][m]
-        sd = np.sqrt((_sigma_ref_px(c.geometry, model, m) * fb / zt ** 2) ** 2 + 0.05 ** 2)
-        a, na = _robust_temporal_var(fb / _pixels(c, m), sd)
-        s, ns = _robust_temporal_var(fb / _pixels(b, m), sd)
-        ok = np.isfinite(a) & np.isfinite(s)
-        if ok.sum() < 50:
-            continue
-        vr.append(float(np.mean(a[ok])))
-        vb.append(float(np.mean(s[ok])))
-        n.append(int(ok.sum()))
+        g = c.geometry
+        m = _sample_mask(g, model, roi=_roi(rois, g))
+        fb = g.fb_px_m
+        zt = _nominal(g, model)[0][m]
+        sd = np.sqrt((_sigma_ref_px(g, model, m) * fb / zt ** 2) ** 2 + 0.05 ** 2)
+        if c.n_frames >= 2:
+            mc = _temporal_min_count(c.n_frames)
+            a, na = _robust_temporal_var(fb / _pixels(c, m), sd, mc)
+            s, ns = _robust_temporal_var(fb / _pixels(b, m), sd, mc)
+            ok = np.isfinite(a) & np.isfinite(s)
+            if ok.sum() < 50:
+                continue
+            vr.append(float(np.mean(a[ok])))
+            vb.append(float(np.mean(s[ok])))
+            n.append(float(ok.sum()) * (c.n_frames - 1))
+        else:
+            sdi = np.ones(m.shape)
+            sdi[m] = sd
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pr = _plane_residual(fb / c.depth_m[0], m, sdi)
+                pb = _plane_residual(fb / b.depth_m[0], m, sdi)
+            if pr is None or pb is None:
+                continue
+            a, ka = _robust_mean_square(pr[0][m], sd)
+            s, kb = _robust_mean_square(pb[0][m], sd)
+            if min(ka.sum(), kb.sum()) < 50:
+                continue
+            vr.append(a)
+            vb.append(s)
+            n.append(float(min(ka.sum(), kb.sum())))
     if not vr:
-        raise ValueError("disparity_noise: no capture with enough valid pixels")
+        raise ValueError("disparity_noise: no capture with >= 50 interior pixels with data (>= 3 values per "
+                         "pixel over the frames, both of a 2-frame capture, or the one frame)")
     vr, vb, n = np.array(vr), np.array(vb), np.array(n, dtype=float)
     s2 = 0.0
     for _ in range(4):
@@ -1373,22 +1578,25 @@ def _lattice_member(k, A):
         return hi * (k + 0.5) >= A
 
 
-def _fit_disparity_quantization(real, base, model, **_):
-    """The coarsest disparity lattice the depth values lie on.
+#: Relative range of the search over f B of the lattice fit (+-1 %): the depth is f B / d with the
+#: device's own f B, which can differ from the calibration's K[0, 0] * baseline_m the capture set
+#: states (a baseline of 49.8 mm instead of the nominal 50 mm is -0.4 %); the lattice f B / (n 2^-b)
+#: moves by k * rel depth units at value k, so it is found only at the right f B.
+LATTICE_FB_RANGE = 0.01
+_LATTICE_BITS = tuple(range(2, 11))
 
-    For bits b = 2..10, the depth units k the lattice f B / (n 2^-b) can produce (:func:`_lattice_member`)
-    are tested where that lattice is >= 2 units apart at the value itself (k^2 u / (2^b f B) >= 2, where
-    its density among the integers is <= 1/2), on the histograms of the interior's depth units: the
-    fraction f_b of real values on it is compared with the base simulation's f0_b (continuous
-    disparities, only the unit rounding): score L_b = (f_b - f0_b) / (1 - f0_b), 1 when every value is
-    on the lattice, <= ~1/2 when the data's lattice is finer. The estimate is the smallest b with
-    L_b >= 0.7 (finer lattices contain coarser ones, so every b above it also scores ~1); 10 when none
-    does (no lattice visible: at 424 x 240 a 10-bit lattice is < 0.4 mm at 2 m).
-    """
+
+def _camera_key(g):
+    return (int(g.width), int(g.height), tuple(float(x) for x in np.round(np.asarray(g.K).ravel(), 6)),
+            float(g.depth_scale), float(g.baseline_m))
+
+
+def _lattice_hists(real, base, model, rois):
+    """Per capture: (id, camera key, distinct depth units k, real counts, base counts, f B / depth_scale)."""
     hists = []
     for c, b in zip(real, base):
         g = c.geometry
-        m = _sample_mask(g, model, 2 * _MAX_SAMPLE_PX)
+        m = _sample_mask(g, model, 2 * _MAX_SAMPLE_PX, _roi(rois, g))
         kr = np.round(_pixels(c, m) / g.depth_scale)
         kb = np.round(_pixels(b, m) / g.depth_scale)
         kr = kr[np.isfinite(kr)].astype(np.int64)
@@ -1399,30 +1607,206 @@ def _fit_disparity_quantization(real, base, model, **_):
         top = int(max(kr.max(), kb.max())) + 1
         hr, hb = np.bincount(kr, minlength=top), np.bincount(kb, minlength=top)
         k = np.flatnonzero((hr > 0) | (hb > 0))
-        hists.append((k.astype(np.float64), hr[k].astype(np.float64), hb[k].astype(np.float64),
-                      g.fb_px_m / g.depth_scale))
-    if not hists:
-        raise ValueError("disparity_quantization: no valid depth")
-    for bits in range(2, 11):
-        q = 2.0 ** bits
-        nr = mr = nb = mb = 0.0
-        for k, hr, hb, A in hists:
-            sel = k * k / (q * A) >= 2.0
-            if not sel.any():
-                continue
-            mem = _lattice_member(k[sel], A * q)
-            nr += hr[sel].sum()
-            nb += hb[sel].sum()
-            mr += hr[sel][mem].sum()
-            mb += hb[sel][mem].sum()
+        hists.append((c.id, _camera_key(g), k.astype(np.float64), hr[k].astype(np.float64),
+                      hb[k].astype(np.float64), g.fb_px_m / g.depth_scale))
+    return hists
+
+
+def _lattice_counts(k, h, Aq, rels):
+    """Sum of the counts h (K,) of the depth units k (K,) that lie on the lattice round(Aq (1 + rel) / n),
+    n = 1, 2, ..., for every rel of the uniform grid ``rels`` (R,) (:func:`_lattice_member` at each rel).
+
+    Unit k is on it when k - 1/2 <= Aq (1 + rel) / n <= k + 1/2 for some n (one n at most where the
+    lattice is >= 2 units apart): an interval of rel per (k, n), summed on the grid by differences.
+    """
+    if rels.size == 1:
+        return np.array([float(np.sum(h[_lattice_member(k, Aq * (1.0 + rels[0]))]))])
+    r0, step, R = float(rels[0]), float(rels[1] - rels[0]), rels.size
+    nlo = np.ceil(Aq * (1.0 + r0) / (k + 0.5))
+    nhi = np.floor(Aq * (1.0 + float(rels[-1])) / (k - 0.5))
+    cnt = np.maximum(nhi - nlo + 1.0, 0.0).astype(np.int64)
+    if cnt.sum() == 0:
+        return np.zeros(R)
+    idx = np.repeat(np.arange(k.size), cnt)
+    n = nlo[idx] + (np.arange(idx.size) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    kk, w = k[idx], h[idx]
+    lo = n * (kk - 0.5) / Aq - 1.0
+    hi = n * (kk + 0.5) / Aq - 1.0
+    i0 = np.maximum(np.ceil((lo - r0) / step - 1e-9), 0).astype(np.int64)
+    i1 = np.minimum(np.floor((hi - r0) / step + 1e-9), R - 1).astype(np.int64)
+    ok = i0 <= i1
+    diff = np.bincount(i0[ok], weights=w[ok], minlength=R + 1) - np.bincount(i1[ok] + 1, weights=w[ok],
+                                                                               minlength=R + 1)
+    return np.cumsum(diff)[:R]
+
+
+def _lattice_group_scan(group, bits: int, rel_range: float):
+    """One camera's captures at one lattice: the relative f B error rel (grid over +-rel_range, fine
+    enough to move the lattice by <= 1/4 unit at the largest value) that puts most real values on the
+    lattice; returns dict(rel, mr, nr, mb, nb, score, alias) or None when no value is testable.
+
+    Only values where the lattice is >= 2 units apart are tested (k^2 / (2^b A) >= 2). The score is
+    L = (f - f0) / (1 - f0) (f, f0: fractions of the real and the base values on the lattice); among
+    rel within 0.02 of the best score, the one nearest 0 (the stated f B) is kept: over a narrow range
+    of depths the lattice repeats every ``alias`` ~ 1 / (mean disparity in lattice steps) in rel.
+    """
+    q = 2.0 ** bits
+    parts = []
+    for _, _, k, hr, hb, A in group:
+        sel = k * k / (q * A) >= 2.0
+        if sel.any():
+            parts.append((k[sel], hr[sel], hb[sel], A * q))
+    if not parts:
+        return None
+    kmax = max(float(p[0].max()) for p in parts)
+    nsteps = int(min(20000, max(2, math.ceil(rel_range * 4.0 * kmax))))
+    rels = np.linspace(-rel_range, rel_range, 2 * nsteps + 1) if rel_range > 0 else np.zeros(1)
+    mr = np.zeros(rels.size)
+    mb = np.zeros(rels.size)
+    nr = nb = 0.0
+    tsum = tn = 0.0
+    for k, hr, hb, Aq in parts:
+        mr += _lattice_counts(k, hr, Aq, rels)
+        mb += _lattice_counts(k, hb, Aq, rels)
+        nr += float(hr.sum())
+        nb += float(hb.sum())
+        tsum += float(np.sum(hr * Aq / k))
+        tn += float(hr.sum())
+    if nr <= 0 or nb <= 0:
+        return None
+    fr, f0 = mr / nr, mb / nb
+    with np.errstate(divide="ignore", invalid="ignore"):
+        score = np.where(f0 < 0.95, (fr - f0) / (1.0 - f0), -np.inf)
+    best = float(np.max(score))
+    near = np.flatnonzero(score >= best - 0.02)
+    i = int(near[np.argmin(np.abs(rels[near]))])
+    return {"rel": float(rels[i]), "mr": float(mr[i]), "nr": nr, "mb": float(mb[i]), "nb": nb,
+            "score": float(score[i]), "alias": float(tn / tsum) if tsum > 0 else float("nan")}
+
+
+def _lattice_scan(hists, rel_range: float = LATTICE_FB_RANGE):
+    """The lattice fit: (bits or None, {bits: [(ids, key, group scan), ...]}, tested), tested = whether any
+    b had >= 500 testable real and base values; see _fit_disparity_quantization."""
+    groups: dict = {}
+    for h in hists:
+        groups.setdefault(h[1], []).append(h)
+    scans = {}
+    tested = False
+    for bits in _LATTICE_BITS:
+        rows = []
+        for key, grp in groups.items():
+            r = _lattice_group_scan(grp, bits, rel_range)
+            if r is not None:
+                rows.append(([h[0] for h in grp], key, r))
+        scans[bits] = rows
+        nr = sum(r["nr"] for _, _, r in rows)
+        nb = sum(r["nb"] for _, _, r in rows)
         if nr < 500 or nb < 500:
             continue
-        fr, f0 = mr / nr, mb / nb
+        fr = sum(r["mr"] for _, _, r in rows) / nr
+        f0 = sum(r["mb"] for _, _, r in rows) / nb
         if f0 >= 0.95:
             continue
+        tested = True
         if (fr - f0) / (1.0 - f0) >= 0.7:
-            return {"subpixel_bits": bits}
-    return {"subpixel_bits": 10}
+            return bits, scans, True
+    return None, scans, tested
+
+
+def _fit_disparity_quantization(real, base, model, rois=None, **_):
+    """The coarsest disparity lattice the depth values lie on, at the f B the device uses.
+
+    For bits b = 2..10, the depth units k the lattice f B / (n 2^-b) can produce (:func:`_lattice_member`)
+    are tested where that lattice is >= 2 units apart at the value itself (k^2 u / (2^b f B) >= 2, where
+    its density among the integers is <= 1/2), on the histograms of the interior's depth units: the
+    fraction f_b of real values on it is compared with the base simulation's f0_b (continuous
+    disparities, only the unit rounding): score L_b = (f_b - f0_b) / (1 - f0_b), 1 when every value is
+    on the lattice, <= ~1/2 when the data's lattice is finer. The estimate is the smallest b with
+    L_b >= 0.7 (finer lattices contain coarser ones, so every b above it also scores ~1); 10 when none
+    does (no lattice visible: at 424 x 240 a 10-bit lattice is < 0.4 mm at 2 m); ValueError when no b
+    has 500 values to test (every target nearer than the depth unit resolves the lattice).
+
+    f B: the lattice is f B / (n 2^-b) with the device's f B, which may differ from the capture's
+    K[0, 0] * baseline_m by a fraction of a percent (a 0.2 % error moves the 1/32 px lattice by a whole
+    step at 1.6 m at 848 x 480 and hides it). So the captures are grouped by camera (same intrinsics,
+    size, depth scale and baseline) and each group's f B is searched over +-:data:`LATTICE_FB_RANGE`
+    (:func:`_lattice_group_scan`; f0 at the same f B); f_b and f0_b pool the groups at their own f B,
+    so captures of different cameras (e.g. a 424 x 240 stream, whose depth is not on the 848 x 480
+    lattice) neither hide nor fake another's lattice. :func:`disparity_lattice` reports the f B found.
+    Works on single frames unchanged (it counts values, not frames).
+    """
+    hists = _lattice_hists(real, base, model, rois)
+    if not hists:
+        raise ValueError("disparity_quantization: no valid depth in the captures' interiors")
+    bits, _, tested = _lattice_scan(hists)
+    if not tested:
+        raise ValueError("disparity_quantization: fewer than 500 depth values where a 2^-b px lattice is >= 2 "
+                         "depth units apart (targets too near for the depth unit, or too few pixels): no lattice "
+                         "can be tested")
+    return {"subpixel_bits": 10 if bits is None else bits}
+
+
+def disparity_lattice(real: Sequence, model: SensorModel = D435, base_effects=(), *, seed: int = 0,
+                      cache: dict | None = None, rois: Mapping | None = None,
+                      rel_range: float = LATTICE_FB_RANGE) -> dict:
+    """The disparity lattice of real captures and the f B [px m] it is found at (the fit of
+    ``disparity_quantization``, with its details).
+
+    Parameters
+    ----------
+    real, model, base_effects, seed, cache, rois
+        As for :func:`fit_effect` (wall and board captures are used).
+    rel_range : float
+        Relative half-range of the f B search, in [0, 0.05] (0: the stated f B only).
+
+    Returns
+    -------
+    dict
+        ``subpixel_bits`` (int, or None when no lattice is visible) and ``cameras``: one entry per
+        camera (captures with the same intrinsics, size, depth scale, baseline) with ``captures`` (ids),
+        ``fb_px_m_stated`` (K[0, 0] * baseline_m), ``fb_px_m`` (where the lattice of ``subpixel_bits``
+        is found; the stated one when no lattice), ``fb_rel`` (fb / stated - 1), ``score`` (fraction of
+        the values on the lattice above chance: 1 = all, ~0 = none), ``values`` (depth values tested) and
+        ``alias_rel``: over a narrow range of depths the lattice repeats every ~alias_rel in f B, so the
+        f B is determined only modulo it (the value nearest the stated one is reported); captures at
+        several distances remove the ambiguity.
+
+    Raises
+    ------
+    ValueError
+        No usable capture or no valid depth, bad input.
+    """
+    from .capture_data import check_captures
+
+    _check_model(model)
+    real = check_captures(real, allow_empty=True)
+    rel_range = _scalar(rel_range, "rel_range", 0.0, 0.05)
+    rois = _check_rois(rois, real)
+    use = usable_captures("disparity_quantization", real)
+    if not use:
+        raise ValueError("disparity_lattice needs wall or board captures; none given")
+    base = _base_sims(use, model, list(base_effects or ()), int(seed), {} if cache is None else cache)
+    hists = _lattice_hists(use, base, model, rois)
+    if not hists:
+        raise ValueError("disparity_lattice: no valid depth in the captures' interiors")
+    bits, scans, _ = _lattice_scan(hists, rel_range)
+    show = scans[bits] if bits is not None else scans[_LATTICE_BITS[-1]]
+    by_key = {key: (ids, r) for ids, key, r in show}
+    cams = []
+    seen = set()
+    for h in hists:
+        if h[1] in seen:
+            continue
+        seen.add(h[1])
+        ids = [x[0] for x in hists if x[1] == h[1]]
+        g = next(c.geometry for c in use if c.id == ids[0])
+        fb0 = float(g.fb_px_m)
+        r = by_key.get(h[1], (None, None))[1]
+        rel = r["rel"] if (r is not None and bits is not None) else 0.0
+        cams.append({"captures": ids, "fb_px_m_stated": fb0, "fb_px_m": fb0 * (1.0 + rel), "fb_rel": rel,
+                     "score": None if r is None else r["score"], "values": 0 if r is None else int(r["nr"]),
+                     "alias_rel": None if r is None else r["alias"]})
+    return {"subpixel_bits": bits, "cameras": cams}
 
 
 # ---- depth_bias ----------------------------------------------------------------------------------
@@ -1433,18 +1817,33 @@ def _trim_mean(x, cut=0.1):
     return float(trim_mean(x, cut)) if x.size else float("nan")
 
 
-def _fit_depth_bias(real, base, model, **_):
+#: depth_bias: the captures' true depths must span this ratio (largest / smallest bin) for the scale and
+#: the disparity offset to be told apart; below it the bias is one number per distance (a scale).
+_BIAS_Z_RATIO = 1.5
+
+
+def _fit_depth_bias(real, base, model, rois=None, **_):
     """Linear regression in disparity.
 
     The effect maps each disparity d (reference noise and base effects included) to
     d' = (d + offset_px) / scale, an affine map; trimmed means commute with it. Per capture and per
     quartile of the true disparity (interior pixels), the 10 %-trimmed mean of the real disparities is
     regressed on that of the base simulation: slope 1 / scale, intercept offset_px / scale.
+
+    Scale and offset differ only in how the bias grows with distance ((scale - 1) z vs z^2 offset / (f B)),
+    so they are told apart only by captures at different distances: when the bins' true depths span
+    less than a factor :data:`_BIAS_Z_RATIO` (a single distance, or a few close ones), the bias is
+    fitted as a scale alone (offset_px = 0: the regression through the origin), which reproduces the
+    bias at the captures' distances but not its growth beyond them. Single frames: the trimmed means of
+    one frame (nothing temporal is used). A capture whose target geometry was itself fitted to its
+    depths (a plane fitted to a region of a frame) has no bias by construction: scale ~1.
     """
-    xs, ys, ws = [], [], []
+    xs, ys, ws, zs = [], [], [], []
     for c, b in zip(real, base):
         g = c.geometry
-        m = _sample_mask(g, model)
+        m = _sample_mask(g, model, roi=_roi(rois, g))
+        if m.sum() < 20:
+            continue
         z, _, _, fb = _nominal(g, model)
         dt = fb / z[m]
         edges = np.quantile(dt, [0.0, 0.25, 0.5, 0.75, 1.0])
@@ -1454,13 +1853,17 @@ def _fit_depth_bias(real, base, model, **_):
             if sel.sum() < 20:
                 continue
             y, x = _trim_mean(dr[:, sel].ravel()), _trim_mean(db[:, sel].ravel())
-            if math.isfinite(x) and math.isfinite(y):
+            if math.isfinite(x) and math.isfinite(y) and x > 0 and y > 0:
                 xs.append(x)
                 ys.append(y)
                 ws.append(float(sel.sum()))
-    if len(xs) < 2 or np.ptp(xs) < 1e-6:
-        raise ValueError("depth_bias: needs captures at two distances or more")
+                zs.append(float(np.median(fb / dt[sel])))
+    if not xs:
+        raise ValueError("depth_bias: no capture with >= 20 interior pixels with data")
     xs, ys, ws = np.array(xs), np.array(ys), np.array(ws)
+    if len(xs) < 2 or np.ptp(xs) < 1e-6 or max(zs) / min(zs) < _BIAS_Z_RATIO:
+        slope = float(np.sum(ws * xs * ys) / np.sum(ws * xs * xs))      # through the origin: a scale
+        return {"scale": float(1.0 / slope), "offset_px": 0.0, "baseline_m": float(real[0].geometry.baseline_m)}
     X = np.column_stack([xs, np.ones_like(xs)]) * np.sqrt(ws)[:, None]
     slope, icpt = np.linalg.lstsq(X, ys * np.sqrt(ws), rcond=None)[0]
     scale = 1.0 / slope
@@ -1468,14 +1871,15 @@ def _fit_depth_bias(real, base, model, **_):
 
 
 # ---- invalid_band --------------------------------------------------------------------------------
-def _fit_invalid_band(real, base, model, **_):
+def _fit_invalid_band(real, base, model, rois=None, **_):
     """Least-squares threshold on the missing fraction.
 
     Every hit pixel has c = u - f B / z_true (columns beyond its own disparity); the effect removes the
     pixels with c < margin. Over the pixels with c < 60 px of all captures, the margin minimising
     sum (a - 1)^2 over c < margin plus sum (a - a0)^2 over c >= margin (a, a0: the pixel's missing
     fraction over the frames in the real data and in the base simulation) is found by sorting c;
-    the estimate is the middle of the gap between the two c values around the step.
+    the estimate is the middle of the gap between the two c values around the step. Single frames:
+    the fractions are 0 or 1 (nothing temporal is used).
     """
     cs, a, a0 = [], [], []
     for c, b in zip(real, base):
@@ -1484,6 +1888,8 @@ def _fit_invalid_band(real, base, model, **_):
         with np.errstate(invalid="ignore", divide="ignore"):
             cc = u - fb / z
         m = np.isfinite(cc) & (cc < 60.0)
+        if _roi(rois, c.geometry) is not None:
+            m &= _roi(rois, c.geometry)
         if not m.any():
             continue
         cs.append(cc[m])
@@ -1516,7 +1922,13 @@ def _bvn_same(t, rho):
     return ndtr(t) - 2.0 * owens_t(t, a)
 
 
-def _fit_dropout(real, base, model, **_):
+#: dropout: the bins' true depths must span this ratio for k_z, and -ln cos(theta) this range (0.1:
+#: 0 to 25 deg) for k_theta, to be fitted; otherwise the slope is 0 (the level is fitted alone).
+_DROPOUT_Z_RATIO = 1.5
+_DROPOUT_X_RANGE = 0.1
+
+
+def _fit_dropout(real, base, model, rois=None, **_):
     """Binomial maximum likelihood for P(z, theta), then the blob length from pairs of holes.
 
     1. Per capture and bin of z_true 3 % wide (interior pixels): n pixel-frames, y missing in the real
@@ -1527,6 +1939,14 @@ def _fit_dropout(real, base, model, **_):
        dropped with probability Phi2(t, t; rho(h)), rho(h) = exp(-h^2 / (2 l^2)) (Owen's T). The
        observed fraction of pixel pairs (lags 1, 2, 3 along rows and columns) both missing, per bin,
        is matched by l (bounded 1-D search, least squares weighted by the binomial variance).
+
+    What the captures determine: k_z only when the bins' true depths span a factor
+    :data:`_DROPOUT_Z_RATIO`, k_theta only when -ln cos(theta) spans :data:`_DROPOUT_X_RANGE` (0 to
+    25 deg); otherwise that slope is fixed at 0 and p_1m is the level seen at the captures' distances
+    (or angles), not an extrapolation to 1 m. The coefficients are bounded by the factory's ranges
+    (|k| <= 20, p_1m in [1e-9, 1 - 1e-9]): a capture with no hole at all (perfect separation) drives a
+    slope to its bound, not to infinity. Single frames: counts over pixels; nothing is temporal (the
+    holes of one frame cannot tell static holes from flickering ones: both are the effect's).
     """
     from scipy.optimize import minimize, minimize_scalar
     from scipy.special import expit, logit, ndtri
@@ -1537,7 +1957,7 @@ def _fit_dropout(real, base, model, **_):
     for c, b in zip(real, base):
         g = c.geometry
         z, th, _, _ = _nominal(g, model)
-        m = _interior(g, model)
+        m = _interior(g, model, _roi(rois, g))
         if m.sum() < 50:
             continue
         zs = z[m]
@@ -1562,24 +1982,41 @@ def _fit_dropout(real, base, model, **_):
         binmap = np.full(m.shape, -1, dtype=np.int64)
         binmap[m] = newid[binid]
         per_cap.append((miss_r, binmap))
-    if len(rows) < 3:
-        raise ValueError("dropout: not enough interior pixels")
+    if not rows:
+        raise ValueError("dropout: no capture with >= 50 interior pixels (bins of >= 10 pixels)")
     R = np.array(rows)
     zb, xb, nb, yb, a0 = R.T
     a0 = np.clip(a0, 0.0, 0.999)
     pobs = np.clip(yb / nb, 0.5 / nb, 1 - 0.5 / nb)
     p0 = np.clip(1.0 - (1.0 - pobs) / (1.0 - a0), 1e-4, 1 - 1e-4)
     X = np.column_stack([np.ones_like(zb), zb - 1.0, xb])
+    free = np.array([True, zb.max() / zb.min() >= _DROPOUT_Z_RATIO and len(rows) >= 3,
+                     np.ptp(xb) >= _DROPOUT_X_RANGE and len(rows) >= 3])
+    if free.all():
+        Xf = X
+    else:
+        Xf = X[:, free]
     w = np.sqrt(nb * p0 * (1 - p0))
-    beta0 = np.linalg.lstsq(X * w[:, None], logit(p0) * w, rcond=None)[0]
+    bf0 = np.linalg.lstsq(Xf * w[:, None], logit(p0) * w, rcond=None)[0]
+    lim = np.array([logit(1 - 1e-9), 20.0, 20.0])[free]
+    bf0 = np.clip(bf0, -lim, lim)
 
-    def nll(beta):
-        p = expit(X @ beta)
+    def nll(bf):
+        p = expit(Xf @ bf)
         P = np.clip(1.0 - (1.0 - p) * (1.0 - a0), 1e-12, 1 - 1e-12)
         return -float(np.sum(yb * np.log(P) + (nb - yb) * np.log1p(-P)))
 
-    res = minimize(nll, beta0, method="L-BFGS-B")
-    beta = res.x if res.success or res.fun <= nll(beta0) else beta0
+    if free.all():
+        res = minimize(nll, bf0, method="L-BFGS-B")
+        bf = res.x if res.success or res.fun <= nll(bf0) else bf0
+        if not np.all(np.abs(bf) <= lim):          # a separated design: keep the slopes in range
+            res = minimize(nll, bf0, method="L-BFGS-B", bounds=list(zip(-lim, lim)))
+            bf = res.x if res.success or res.fun <= nll(bf0) else bf0
+    else:
+        res = minimize(nll, bf0, method="L-BFGS-B", bounds=list(zip(-lim, lim)))
+        bf = res.x if res.success or res.fun <= nll(bf0) else bf0
+    beta = np.zeros(3)
+    beta[free] = bf
     # 2. length from pairs of holes
     tfull = ndtri(np.clip(expit(X @ beta), 1e-9, 1 - 1e-9))       # threshold per bin (row of R)
     nbins = tfull.size
@@ -1605,6 +2042,8 @@ def _fit_dropout(real, base, model, **_):
                 npairs.append(cnt[sel])
                 tt.append(tfull[sel])
                 lags.append(np.full(int(sel.sum()), float(h)))
+    if not obs or sum(a.size for a in obs) == 0:
+        raise ValueError("dropout: no pair of neighbouring interior pixels for the blob length")
     obs, npairs, tt, lags = (np.concatenate(a) for a in (obs, npairs, tt, lags))
 
     def loss(logl):
@@ -1690,7 +2129,24 @@ def _standardised_residuals(c, m, sig, nf):
     return x, k.astype(np.float32)
 
 
-def _fit_correlated_noise(real, base, model, **_):
+def _spatial_standardised_residual(c, m, sig, fb):
+    """One-frame counterpart of :func:`_standardised_residuals`: (z - z_plane) / sigma at the mask's
+    pixels, z_plane = f B / (the frame's best disparity plane, :func:`_plane_residual`), values more
+    than 8 sigma from the median left out (0, weight 0); returns (x, w) float32 (1, H, W) or None."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pr = _plane_residual(fb / c.depth_m[0], m)
+    if pr is None:
+        return None
+    z = c.depth_m[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (z - fb / pr[1]) / sig
+        keep = m & np.isfinite(x)
+        med = float(np.median(x[keep])) if keep.any() else 0.0
+        keep &= np.abs(x - med) <= 8.0
+    return (np.where(keep, x, 0.0).astype(np.float32)[None], keep.astype(np.float32)[None])
+
+
+def _fit_correlated_noise(real, base, model, rois=None, **_):
     """Excess lag covariance of the per-frame residuals, in units of sigma_z.
 
     Per capture (interior pixels valid in every frame; captures up to 60 deg, below the truncation of
@@ -1698,32 +2154,55 @@ def _fit_correlated_noise(real, base, model, **_):
     more than 8 sigma from the pixel's temporal median (outliers) left out of the mean and the sums: the
     temporal mean removes everything static. The effect adds f g with g a unit field of correlation
     rho(h), so x's lag covariance (over the first 6 frames) grows by f^2 (1 - 1/F) rho(h). The
-    real-minus-base covariances at lags 0-11 px (rows and columns), pooled over captures by pair
-    counts, give f^2 and l (:func:`_fit_gaussian_cov`).
+    real-minus-base covariances at lags 0-11 px (rows and columns), divided by (1 - 1/F) and pooled
+    over captures by pair counts, give f^2 and l (:func:`_fit_gaussian_cov`).
+
+    A capture of one frame has no temporal mean: x is its frame's residual about the target's best
+    plane (:func:`_spatial_standardised_residual`), whose lag covariance grows by f^2 rho(h), and lag 0
+    is left out of the fit when any capture has one frame (extra white noise, disparity_noise or a
+    refitted axial sigma, adds there only). Assumption: one frame cannot tell a field drawn afresh
+    every frame from a static one (static_pattern) or from a static share of it, so on single frames
+    the whole excess spatial correlation is attributed to this effect (the temporal share is not
+    identifiable; it is 1 here).
     """
-    num, den, F = np.zeros(len(_CORR_LAGS)), np.zeros(len(_CORR_LAGS)), []
+    num, den, nF = np.zeros(len(_CORR_LAGS)), np.zeros(len(_CORR_LAGS)), 0
+    single = False
     for c, b in zip(real, base):
         g = c.geometry
-        z, th, _, _ = _nominal(g, model)
+        z, th, _, fb = _nominal(g, model)
         if np.nanmax(th) > math.radians(60.5):
             continue
-        m = _interior(g, model) & np.all(np.isfinite(c.depth_m), axis=0) & np.all(np.isfinite(b.depth_m), axis=0)
+        m = (_interior(g, model, _roi(rois, g)) & np.all(np.isfinite(c.depth_m), axis=0)
+             & np.all(np.isfinite(b.depth_m), axis=0))
         if m.sum() < 100:
             continue
         sig = np.where(m, _axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0), model), 1.0)
-        nf = min(c.n_frames, _CORR_FRAMES)
-        xr, wr = _standardised_residuals(c, m, sig, nf)
-        xb, wb = _standardised_residuals(b, m, sig, nf)
+        if c.n_frames >= 2:
+            nf = min(c.n_frames, _CORR_FRAMES)
+            xr, wr = _standardised_residuals(c, m, sig, nf)
+            xb, wb = _standardised_residuals(b, m, sig, nf)
+            gain = 1.0 - 1.0 / c.n_frames
+        else:
+            rr = _spatial_standardised_residual(c, m, sig, fb)
+            rb = _spatial_standardised_residual(b, m, sig, fb)
+            if rr is None or rb is None:
+                continue
+            (xr, wr), (xb, wb) = rr, rb
+            gain, single = 1.0, True
         cr, n = _lag_cov_masked(xr, wr, _CORR_LAGS)
         cb, _ = _lag_cov_masked(xb, wb, _CORR_LAGS)
-        num += n * (cr - cb)
-        den += n
-        F.append(c.n_frames)
-    if not F:
-        raise ValueError("correlated_noise: needs captures at <= 60 deg with pixels valid in every frame")
-    A, ell = _fit_gaussian_cov(_CORR_LAGS, num / den)
-    Fm = float(np.mean(F))
-    return {"sigma_z_fraction": float(math.sqrt(max(A / (1.0 - 1.0 / Fm), 1e-8))), "length_px": float(ell)}
+        ok = np.isfinite(cr) & np.isfinite(cb)
+        num[ok] += n[ok] * (cr[ok] - cb[ok]) / gain
+        den[ok] += n[ok]
+        nF += 1
+    if not nF or not (den > 0).all():
+        raise ValueError("correlated_noise: needs captures at <= 60 deg with >= 100 interior pixels valid in "
+                         "every frame")
+    lags, exc = np.array(_CORR_LAGS), num / den
+    if single:
+        lags, exc = lags[1:], exc[1:]
+    A, ell = _fit_gaussian_cov(lags, exc)
+    return {"sigma_z_fraction": float(math.sqrt(max(A, 1e-8))), "length_px": float(ell)}
 
 
 # ---- static_pattern ---------------------------------------------------------------------------------
@@ -1749,7 +2228,22 @@ def _detrended_mean_residual(c, m, fb, dtrue):
     return out
 
 
-def _fit_static_pattern(real, base, model, **_):
+def _single_frame_residual(c, m, fb):
+    """One frame's disparity minus its best plane (:func:`_plane_residual`), values more than 8 robust
+    sigmas from 0 (outliers) set to NaN; None when fewer than 50 pixels have data."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pr = _plane_residual(fb / c.depth_m[0], m)
+    if pr is None:
+        return None
+    r = pr[0]
+    ok = np.isfinite(r)
+    s = 1.4826 * float(np.median(np.abs(r[ok])))
+    if s > 0:
+        r = np.where(np.abs(r) <= 8.0 * s, r, np.nan)
+    return r
+
+
+def _fit_static_pattern(real, base, model, rois=None, **_):
     """Excess lag covariance of the temporal-mean disparity residual.
 
     Per capture (interior pixels): the temporal mean of d = f B / z minus the true disparity, minus its
@@ -1758,29 +2252,46 @@ def _fit_static_pattern(real, base, model, **_):
     (noise / F) is subtracted. Captures are pooled with weights n / (base variance + current estimate)^2,
     then sigma_px^2 and the length are fitted (:func:`_fit_gaussian_cov`). The pattern's realisation is
     not recovered (its ``seed`` is returned as 0).
+
+    A capture of one frame: the "temporal mean" is its frame (the residual about its best plane fitted
+    robustly, values beyond 8 robust sigmas left out, :func:`_single_frame_residual`), and lag 0 is left
+    out of the fit when any capture has one frame (white noise adds there: the base's is subtracted,
+    but any extra white noise of the real data would read as a pattern). Assumption: one frame cannot
+    tell a static pattern from a field drawn afresh every frame (correlated_noise): on single frames
+    the whole excess spatial correlation of the frame is attributed to the static pattern.
     """
     rows = []
+    single = False
     for c, b in zip(real, base):
         g = c.geometry
         z, _, _, fb = _nominal(g, model)
-        m = _interior(g, model)
+        m = _interior(g, model, _roi(rois, g))
         with np.errstate(divide="ignore", invalid="ignore"):
             dtrue = fb / z
-        rr = _detrended_mean_residual(c, m, fb, dtrue)
-        rb = _detrended_mean_residual(b, m, fb, dtrue)
+        if c.n_frames >= 2:
+            rr = _detrended_mean_residual(c, m, fb, dtrue)
+            rb = _detrended_mean_residual(b, m, fb, dtrue)
+        else:
+            rr = _single_frame_residual(c, m, fb)
+            rb = _single_frame_residual(b, m, fb)
         if rr is None or rb is None:
             continue
+        single |= c.n_frames == 1
         cr, n = _lag_cov(rr[None], m, _STATIC_LAGS)
         cb, _ = _lag_cov(rb[None], m, _STATIC_LAGS)
+        if not (np.all(np.isfinite(cr)) and np.all(np.isfinite(cb))):
+            continue
         rows.append((cr - cb, n, cb[0]))
     if not rows:
-        raise ValueError("static_pattern: no capture with enough valid pixels")
+        raise ValueError("static_pattern: no capture with >= 50 interior pixels with data (in half its frames)")
+    lags = np.array(_STATIC_LAGS)
+    use = slice(1, None) if single else slice(None)
     A = 0.0
     ell = 5.0
     for _ in range(3):
         num = sum(n * e / (v0 + A) ** 2 for e, n, v0 in rows)
         den = sum(n / (v0 + A) ** 2 for e, n, v0 in rows)
-        A, ell = _fit_gaussian_cov(_STATIC_LAGS, num / den, lmin=0.5, lmax=80.0)
+        A, ell = _fit_gaussian_cov(lags[use], (num / den)[use], lmin=0.5, lmax=80.0)
     return {"sigma_px": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
 
 
@@ -1820,6 +2331,24 @@ def _edge_setup(g, model):
     return out
 
 
+def _edge_sides(g, model, roi=None):
+    """:func:`_edge_setup` restricted to a region of interest (the side's pixels in it, rows that still
+    cross the edge inside it)."""
+    sides = _edge_setup(g, model)
+    if roi is None:
+        return sides
+    out = []
+    for side in sides:
+        if side is None:
+            out.append(None)
+            continue
+        S = side["S"] & roi
+        rows = (S & side["board"]).any(axis=1) & (S & ~side["board"]).any(axis=1)
+        S = S & rows[:, None]
+        out.append({**side, "S": S, "rows": int(rows.sum())} if S.any() else None)
+    return out
+
+
 def _disp_sigma(z, th, model, depth_scale, fb):
     """Disparity noise [px] of the reference at depth z with the unit rounding: sqrt(s_d^2 + q^2 / 12)."""
     s = _axial_sigma_unchecked(np.asarray(z, dtype=float), np.asarray(th, dtype=float), model)
@@ -1843,7 +2372,7 @@ def _flying_stats(c, side, lo_fg, lo_bg):
     return n, hist
 
 
-def _levels_from_base(b, model):
+def _levels_from_base(b, model, roi=None):
     """Offsets and robust spreads [px] of the board's and the background's disparities in the base
     simulation relative to the nominal geometry (base effects such as a depth bias move the levels,
     a static pattern widens them): (m_fg, s_fg, m_bg, s_bg)."""
@@ -1853,7 +2382,8 @@ def _levels_from_base(b, model):
     z, th, reg, fb = _nominal(g, model)
     d = fb / b.depth_m
     out = []
-    for mask, level in ((_interior(g, model), fb / z), (reg == REGION_BACKGROUND, fb / g.background_m)):
+    bgm = reg == REGION_BACKGROUND if roi is None else (reg == REGION_BACKGROUND) & roi
+    for mask, level in ((_interior(g, model, roi), fb / z), (bgm, fb / g.background_m)):
         r = (d[:, mask] - (level[mask] if np.ndim(level) else level)).ravel()
         r = r[np.isfinite(r)]
         if r.size < 20:
@@ -1864,7 +2394,7 @@ def _levels_from_base(b, model):
     return tuple(out)
 
 
-def _fit_flying_pixels(real, base, model, **_):
+def _fit_flying_pixels(real, base, model, rois=None, **_):
     """Counts of intermediate depths at the board's left and right edges, and their spacing.
 
     In the rows crossing a vertical edge (edge regions), a pixel is intermediate when its disparity
@@ -1876,13 +2406,15 @@ def _fit_flying_pixels(real, base, model, **_):
     the excess (real - base) histogram of distances between intermediate pixels of the same row and
     side is matched (least squares on the normalised histogram) by the distance distribution of two
     slots among n, P(h) ~ n - h; then p = excess count / (q v n F rows) summed over captures and sides.
+    Single frames: the same counts with F = 1 (each frame's band is drawn afresh, so one frame is a
+    sample like any other; the precision falls as 1 / sqrt(frames)).
     """
     n_exc, h_exc, denom_unit = 0.0, np.zeros(len(_PAIR_LAGS)), []
     for c, b in zip(real, base):
         g = c.geometry
-        sides = _edge_setup(g, model)
+        sides = _edge_sides(g, model, _roi(rois, g))
         z, th, _, fb = _nominal(g, model)
-        m_fg, s_fg, m_bg, s_bg = _levels_from_base(b, model)
+        m_fg, s_fg, m_bg, s_bg = _levels_from_base(b, model, _roi(rois, g))
         for side in sides:
             if side is None:
                 continue
@@ -2003,7 +2535,7 @@ def _horizontal_background_rows(c, zones, dmid):
     return float(np.mean(tot)) if tot else float("nan")
 
 
-def _fit_edge_fattening(real, base, model, **_):
+def _fit_edge_fattening(real, base, model, rois=None, **_):
     """The board's edges move outwards by the fattening width.
 
     Two estimates, combined by their inverse variances:
@@ -2022,11 +2554,16 @@ def _fit_edge_fattening(real, base, model, **_):
       make this noisy: variance (lateral sigma in px)^2 / frames per edge.
 
     Both are robust to missing pixels (fractions of valid pixels) and to flying pixels (symmetric).
+    Single frames: the same with F = 1; the left/right estimates then carry the full lateral noise of
+    one frame's edge shift (their weight falls with it), the top/bottom ones stay precise.
     """
     num, den = 0.0, 0.0
     for c, b in zip(real, base):
         g = c.geometry
         zones = _horizontal_edge_zones(g, model)
+        roi = _roi(rois, g)
+        if roi is not None:
+            zones = [(col, r0, r1) for col, r0, r1 in zones if roi[r0:r1, col].all()]
         if len(zones) >= 5:
             z, _, _, fb = _nominal(g, model)
             zp = g.plane_depth()
@@ -2053,7 +2590,7 @@ def _fit_edge_fattening(real, base, model, **_):
                 var = max(0.25 / (len(zones) * c.n_frames), 0.05 ** 2) / slope ** 2
                 num += w_h / var
                 den += 1.0 / var
-        for left, side in zip((True, False), _edge_setup(g, model)):
+        for left, side in zip((True, False), _edge_sides(g, model, roi)):
             if side is None or not math.isfinite(side["sig_px"]):
                 continue
             est = _expected_background_columns(g, side, model, left) - _background_columns(c, side)
@@ -2066,7 +2603,7 @@ def _fit_edge_fattening(real, base, model, **_):
 
 
 # ---- outliers ----------------------------------------------------------------------------------------
-def _fit_outliers(real, base, model, **_):
+def _fit_outliers(real, base, model, rois=None, **_):
     """Maximum likelihood on the tails of the disparity residual.
 
     Per capture (interior, <= 60 deg) and pixel i: r = d - d_true minus the base simulation's mean
@@ -2079,7 +2616,8 @@ def _fit_outliers(real, base, model, **_):
     is seen as a tail with probability Q_i = P(|X| > T_i, X > -(d_i - d_min)) (below, d + X is beyond
     the uint16 range: no data, not seen). s maximises the likelihood of the tail residuals
     conditional on being seen (1-D bounded search); then fraction = (real tails - base tails) /
-    sum_i Q_i n_i, n_i the pixel's valid frames in the base simulation.
+    sum_i Q_i n_i, n_i the pixel's valid frames in the base simulation. Single frames: the same counts
+    over pixels (nothing temporal is used); fewer than 5 tail values in all: fraction 1e-6 (none).
     """
     from scipy.optimize import minimize_scalar
     from scipy.special import ndtr
@@ -2090,7 +2628,7 @@ def _fit_outliers(real, base, model, **_):
         z, th, _, fb = _nominal(g, model)
         if np.nanmax(th) > math.radians(60.5):
             continue
-        m = _sample_mask(g, model, 2 * _MAX_SAMPLE_PX)
+        m = _sample_mask(g, model, 2 * _MAX_SAMPLE_PX, _roi(rois, g))
         if m.sum() < 100:
             continue
         zt = z[m]
@@ -2099,7 +2637,7 @@ def _fit_outliers(real, base, model, **_):
         rr = fb / _pixels(c, m) - dt
         rb = fb / _pixels(b, m) - dt
         okb = np.isfinite(rb)
-        if okb.sum() < 100:
+        if okb.sum() < 100 or np.isfinite(rr).sum() < 100:
             continue
         # the base's mean residual, linear in d_true
         X = np.column_stack([np.ones(int(okb.sum())), np.broadcast_to(dt, rb.shape)[okb]])
@@ -2122,7 +2660,7 @@ def _fit_outliers(real, base, model, **_):
         caps.append(dict(tail=rr[tmask], tpix=pix[tmask], sc=sc, T=T, dlim=d_lim, nb=nb_tail,
                          nvalid=okb.sum(axis=0).astype(float)))
     if not caps:
-        raise ValueError("outliers: needs captures at <= 60 deg")
+        raise ValueError("outliers: needs captures at <= 60 deg with >= 100 interior pixels with data")
     if sum(cp["tail"].size for cp in caps) < 5:
         return {"fraction": 1e-6, "sigma_px": 1.0}
 
@@ -2153,7 +2691,35 @@ def _fit_outliers(real, base, model, **_):
 _AXIAL_SCALE2 = 0.6
 
 
-def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, **_):
+#: axial_refit: the bins' mean true depths must span this ratio for c0, c1, c2 to be fitted separately,
+#: and the share of the angle term in the reference sigma must vary by this much between bins for
+#: c_theta to be told from them.
+_AXIAL_Z_RATIO = 2.0
+_AXIAL_ANGLE_SHARE = 0.3
+
+
+def _pixel_variances(c, m, sref, fb, zs):
+    """Per-pixel variance estimates of z [m^2] at the mask's pixels and the number of values behind each
+    (N,): the robust temporal variance (:func:`_robust_temporal_var`) with >= 2 frames; with one frame,
+    the squared residual about the frame's best disparity plane (z - f B / plane, :func:`_plane_residual`),
+    NaN beyond 6 robust sigmas (:func:`_robust_mean_square`); zs (N,) the pixels' true depths [m].
+    Returns (v (N,), degrees of freedom per value)."""
+    if c.n_frames >= 2:
+        v, _ = _robust_temporal_var(_pixels(c, m), sref, _temporal_min_count(c.n_frames))
+        return v, c.n_frames - 1
+    sc = np.ones(m.shape)
+    sc[m] = sref * fb / np.maximum(zs, 1e-6) ** 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pr = _plane_residual(fb / c.depth_m[0], m, sc)
+    if pr is None:
+        return np.full(int(m.sum()), np.nan), 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = c.depth_m[0][m] - fb / pr[1][m]
+    _, keep = _robust_mean_square(r, sref)
+    return np.where(keep, r * r, np.nan), 1
+
+
+def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, rois=None, **_):
     """Least squares of the temporal variance on the paper's four terms.
 
     Per capture and quartile of z_true (interior pixels): v the mean robust per-pixel temporal variance
@@ -2168,6 +2734,20 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, **_
     non-negative coefficients (bounded least squares started from the non-negative linear fit of
     sqrt(y)). Bins whose sigma exceeds 15 % of z are left out (the reference noise is truncated at
     z <= 0 there).
+
+    Single frames: a capture of one frame has no temporal variance; the squared residual of its frame
+    about the target's best plane (:func:`_pixel_variances`) stands in, pixel by pixel (the paper's own
+    plane-fit sigma). Assumption: the spatial spread of one frame is all per-frame noise; a static
+    pattern or a correlated field in it (not separable from one frame) is fitted into sigma too.
+
+    What the captures determine: the four coefficients only when the bins span distances (mean true
+    depths a factor >= :data:`_AXIAL_Z_RATIO` apart) and angles (the angle term's share of the
+    reference sigma differs by >= :data:`_AXIAL_ANGLE_SHARE` between bins, e.g. 0 and >= 30 deg). If
+    not, fewer parameters are fitted and the others follow the paper's shape: distances but no angles:
+    c0, c1, c2 free and c_theta = the paper's times the ratio of the fitted to the paper's distance
+    term at the bins' median depth; angles but one distance range: the distance term is the paper's
+    times one factor a, c_theta free; neither: every coefficient is the paper's times one factor a
+    (the noise's magnitude at the captures' distances and angles).
     """
     from scipy.optimize import least_squares, nnls
 
@@ -2175,19 +2755,20 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, **_
     if base_effects:
         model2 = replace(model, axial_coefficients=tuple(_AXIAL_SCALE2 * float(c) for c in model.axial_coefficients))
         base2 = _base_sims(real, model2, base_effects, seed, {} if cache is None else cache)
-    bins, ys, sds = [], [], []
+    bins, ys, sds, zmean, share = [], [], [], [], []
     ct = model.theta_max_rad
+    cref = np.array([float(v) for v in model.axial_coefficients])
     for k, (c, b) in enumerate(zip(real, base)):
         g = c.geometry
-        z, th, _, _ = _nominal(g, model)
-        m = _sample_mask(g, model)
+        z, th, _, fb = _nominal(g, model)
+        m = _sample_mask(g, model, roi=_roi(rois, g))
         if m.sum() < 50:
             continue
         zs, ts = z[m], np.minimum(np.abs(th[m]), ct)
         sref = _axial_sigma_unchecked(zs, ts, model)
-        vr, _ = _robust_temporal_var(_pixels(c, m), sref)
-        vb, _ = _robust_temporal_var(_pixels(b, m), sref)
-        vb2 = _robust_temporal_var(_pixels(base2[k], m), _AXIAL_SCALE2 * sref)[0] if base2 is not None else None
+        vr, dof = _pixel_variances(c, m, sref, fb, zs)
+        vb, _ = _pixel_variances(b, m, sref, fb, zs)
+        vb2 = _pixel_variances(base2[k], m, _AXIAL_SCALE2 * sref, fb, zs)[0] if base2 is not None else None
         edges = np.quantile(zs, [0.0, 0.25, 0.5, 0.75, 1.0])
         for i in range(4):
             sel = (zs >= edges[i]) & ((zs <= edges[i + 1]) if i == 3 else (zs < edges[i + 1]))
@@ -2213,24 +2794,56 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, **_
             gth = zz * np.sqrt(zz) * tt / (0.5 * np.pi - tt) ** 2
             bins.append(np.column_stack([np.ones_like(zz), zz, zz * zz, gth]))
             ys.append(y2)
-            sds.append(math.sqrt(2.0 * (v_r ** 2 + v_b ** 2) / (sel.sum() * max(c.n_frames - 1, 1))) / f)
-    if len(ys) < 4:
-        raise ValueError("axial_refit: needs captures at several distances and angles")
+            sds.append(math.sqrt(2.0 * (v_r ** 2 + v_b ** 2) / (sel.sum() * max(dof, 1))) / f)
+            zmean.append(float(np.mean(zz)))
+            share.append(float(np.mean(cref[3] * gth / sref[sel])))
+    if not ys:
+        raise ValueError("axial_refit: no bin of >= 20 interior pixels with a usable variance (>= 2 values per "
+                         "pixel over the frames or one frame's plane residual; sigma < 15 % of z)")
     y, sd = np.array(ys), np.array(sds)
     Bm = np.array([Bk.mean(axis=0) for Bk in bins])
-    c_lin, _ = nnls(Bm / np.sqrt(y)[:, None], np.ones_like(y))
     Ball = np.concatenate(bins)
     ids = np.repeat(np.arange(len(bins)), [len(Bk) for Bk in bins])
     cnt = np.bincount(ids).astype(float)
+    dist_free = max(zmean) / min(zmean) >= _AXIAL_Z_RATIO
+    angle_free = max(share) - min(share) >= _AXIAL_ANGLE_SHARE
+    scale = np.array([1e-3, 1e-3, 1e-3, 1e-2])
+    if dist_free and angle_free and len(ys) >= 4:
+        c_lin, _ = nnls(Bm / np.sqrt(y)[:, None], np.ones_like(y))
 
-    def resid(cc):
-        s2 = (Ball @ cc) ** 2
+        def resid(cc):
+            s2 = (Ball @ cc) ** 2
+            return (np.bincount(ids, weights=s2) / cnt - y) / sd
+
+        x0 = np.maximum(c_lin, 1e-7)
+        r = least_squares(lambda q: resid(q * scale), x0 / scale, bounds=(0.0, np.inf), method="trf")
+        c0, c1, c2, cth = (float(v) for v in r.x * scale)
+        return {"c0": max(c0, 1e-6), "c1": c1, "c2": c2, "c_theta": cth}
+    # fewer parameters: c = coefficients(q)
+    zmed = float(np.median(zmean))
+    dref = cref[0] + cref[1] * zmed + cref[2] * zmed ** 2
+    if dist_free and len(ys) >= 3:
+        def coef(q):
+            cd = q[:3] * scale[:3]
+            return np.append(cd, cref[3] * (cd[0] + cd[1] * zmed + cd[2] * zmed ** 2) / dref)
+        c_lin, _ = nnls(Bm[:, :3] / np.sqrt(y)[:, None], np.ones_like(y))
+        x0 = np.maximum(c_lin, 1e-7) / scale[:3]
+    elif angle_free and len(ys) >= 2:
+        def coef(q):
+            return np.array([q[0] * cref[0], q[0] * cref[1], q[0] * cref[2], q[1] * scale[3]])
+        a0 = float(np.median(np.sqrt(y) / np.maximum(Bm @ cref, 1e-12)))
+        x0 = np.array([a0, a0 * cref[3] / scale[3]])
+    else:
+        def coef(q):
+            return q[0] * cref
+        x0 = np.array([float(np.median(np.sqrt(y) / np.maximum(Bm @ cref, 1e-12)))])
+
+    def resid_q(q):
+        s2 = (Ball @ coef(q)) ** 2
         return (np.bincount(ids, weights=s2) / cnt - y) / sd
 
-    x0 = np.maximum(c_lin, 1e-7)
-    scale = np.array([1e-3, 1e-3, 1e-3, 1e-2])
-    r = least_squares(lambda q: resid(q * scale), x0 / scale, bounds=(0.0, np.inf), method="trf")
-    c0, c1, c2, cth = (float(v) for v in r.x * scale)
+    r = least_squares(resid_q, np.maximum(x0, 1e-7), bounds=(0.0, np.inf), method="trf")
+    c0, c1, c2, cth = (float(v) for v in coef(r.x))
     return {"c0": max(c0, 1e-6), "c1": c1, "c2": c2, "c_theta": cth}
 
 
