@@ -67,6 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from noise_model.alternatives import make_variance_model
+from noise_model.checks import check_names
 from noise_model.effects import EFFECTS, Effect, make_effect
 
 from .elevation_map import ElevationMap
@@ -262,15 +263,7 @@ def parse_mappers(spec) -> tuple[str, ...]:
     """Mapper names from a comma-separated string or a sequence (None: all of :data:`MAPPERS`)."""
     if spec is None:
         return MAPPERS
-    names = [s.strip() for s in spec.split(",")] if isinstance(spec, str) else [str(s) for s in spec]
-    if not names or any(not n for n in names):
-        raise ValueError(f"--mappers {spec!r}: give comma-separated names of {', '.join(MAPPERS)}")
-    for n in names:
-        if n not in MAPPERS:
-            raise ValueError(f"unknown mapper {n!r}; mappers: {', '.join(MAPPERS)}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"--mappers {spec!r} names a mapper twice")
-    return tuple(names)
+    return tuple(check_names(spec, "--mappers", MAPPERS, "mapper"))
 
 
 # ---------------------------------------------------------------------------------------------

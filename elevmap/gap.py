@@ -39,6 +39,7 @@ import numpy as np
 from noise_model import effects as E
 from noise_model import gap as G
 from noise_model.capture_data import CaptureData, CaptureGeometry, check_captures, simulate_capture
+from noise_model.checks import check_names
 from noise_model.d435 import D435, SensorModel
 
 from .fileio import json_ready, write_json_atomic
@@ -63,18 +64,7 @@ def parse_effect_names(effects) -> list[str]:
     comma-separated string or a sequence of names of :data:`noise_model.effects.EFFECTS`."""
     if effects is None or (isinstance(effects, str) and effects.strip().lower() in ("", "all")):
         return list(E.ORDER) + [n for n in E.EFFECTS if n not in E.ORDER]
-    if isinstance(effects, str):
-        names = [s.strip() for s in effects.split(",")]
-    else:
-        names = [str(s).strip() for s in effects]
-    if any(not n for n in names):
-        raise ValueError(f"--effects {effects!r}: give comma-separated names of {', '.join(E.EFFECTS)}")
-    for n in names:
-        if n not in E.EFFECTS:
-            raise ValueError(f"unknown effect {n!r}; effects: {', '.join(E.EFFECTS)}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"--effects {effects!r} names an effect twice")
-    return names
+    return check_names(effects, "--effects", list(E.EFFECTS), "effect")
 
 
 def _incidence_deg(target: dict) -> float:
@@ -149,14 +139,7 @@ def split_captures(geometries: Sequence[CaptureGeometry], heldout="auto", distan
     elif isinstance(heldout, str) and heldout.strip().lower() in ("", "none"):
         held, rule = [], "none"
     else:
-        held = [s.strip() for s in heldout.split(",")] if isinstance(heldout, str) else [str(s) for s in heldout]
-        if any(not h for h in held):
-            raise ValueError(f"--heldout {heldout!r}: give comma-separated capture ids, or auto")
-        for h in held:
-            if h not in ids:
-                raise ValueError(f"--heldout: no capture {h!r} (captures: {', '.join(ids)})")
-        if len(set(held)) != len(held):
-            raise ValueError(f"--heldout {heldout!r} names a capture twice")
+        held = check_names(heldout, "--heldout", ids, "capture")
         rule = "given: " + ", ".join(held)
     hs = set(held)
     fit = [i for i in ids if i not in hs]

@@ -80,3 +80,16 @@ def test_noise_model_imports_no_io_or_visualisation():
 def test_elevmap_core_imports_no_realsense():
     code = ("import sys, elevmap, elevmap.cli, elevmap.bench; sys.exit(1 if 'pyrealsense2' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_name_lists_of_the_options_name_the_problem():
+    from noise_model.checks import check_names
+
+    assert check_names(" a, b ", "--x", ["a", "b", "c"]) == ["a", "b"]
+    assert check_names(["c"], "--x", ["a", "b", "c"]) == ["c"]
+    with pytest.raises(ValueError, match="unknown mapper 'd'; mappers: a, b"):
+        check_names("a,d", "--mappers", ["a", "b"], "mapper")
+    with pytest.raises(ValueError, match="names a capture twice"):
+        check_names("a,a", "--heldout", None, "capture")
+    with pytest.raises(ValueError, match="give comma-separated effects"):
+        check_names("a,,b", "--effects", None, "effect")

@@ -302,7 +302,7 @@ def test_split_and_effect_arguments():
     assert held == [g.id for g in geoms if g.distance_m in (1.2, 1.5)] and "1.2-1.5" in rule
     fit, held, _ = EG.split_captures(geoms, "board_z0.60_y00,board_z2.10_y30")
     assert held == ["board_z0.60_y00", "board_z2.10_y30"] and len(fit) == 10
-    with pytest.raises(ValueError, match="no capture"):
+    with pytest.raises(ValueError, match="unknown capture .nope."):
         EG.split_captures(geoms, "nope")
     with pytest.raises(ValueError, match="unknown effect"):
         EG.parse_effect_names("invalid_band,teleport")
