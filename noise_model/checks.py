@@ -271,7 +271,13 @@ def check_names(spec, option: str, allowed=None, what: str = "name") -> list[str
     ValueError
         An empty entry, an unknown name, a name given twice.
     """
-    names = [s.strip() for s in spec.split(",")] if isinstance(spec, str) else [str(s).strip() for s in spec]
+    if isinstance(spec, str):
+        names = [s.strip() for s in spec.split(",")]
+    else:
+        try:
+            names = [str(s).strip() for s in spec]
+        except TypeError:
+            raise ValueError(f"{option} must be comma-separated {what}s or a list of them, got {spec!r}") from None
     if not names or any(not n for n in names):
         hint = f" of {', '.join(allowed)}" if allowed is not None else ""
         raise ValueError(f"{option} {spec!r}: give comma-separated {what}s{hint}")

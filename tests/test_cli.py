@@ -93,3 +93,5 @@ def test_name_lists_of_the_options_name_the_problem():
         check_names("a,a", "--heldout", None, "capture")
     with pytest.raises(ValueError, match="give comma-separated effects"):
         check_names("a,,b", "--effects", None, "effect")
+    with pytest.raises(ValueError, match="--heldout must be comma-separated captures or a list"):
+        check_names(3, "--heldout", None, "capture")
