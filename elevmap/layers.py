@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from numba import njit
+
 __all__ = ["LAYERS", "ELEVATION", "VARIANCE", "MIN_HEIGHT", "MAX_HEIGHT", "HVAR_X", "HVAR_Y", "HVAR_XY", "TIME",
            "POINTS", "UPPER_BOUND", "SPREAD", "INFO_SUM", "INFO_SQ_SUM", "SCATTER", "UNKNOWN_VALUES",
            "ZERO_WHEN_UNKNOWN", "LAYERS_V1"]
@@ -48,11 +50,5 @@ def _clear_sums_py(data, bi, bj):
     data[SCATTER, bi, bj] = 0.0
 
 
-def _jit():
-    from numba import njit
-
-    return njit(cache=True)(_clear_sums_py)
-
-
 #: numba version of :func:`_clear_sums_py`, for the kernels that clear a cell (its other layers NaN).
-clear_sums = _jit()
+clear_sums = njit(cache=True)(_clear_sums_py)
