@@ -185,9 +185,31 @@ class ElevationMap:
         cleared = 0
         if origin is not None and self.visibility_cleanup and n_pts:
             cleared = self._visibility(origin, p, var, stamp, impl)
+        if self.fusion_params.neighbour_radius and n_pts:
+            self._neighbours(p, origin if cleared else None, impl)
         self.frames += 1
         self.last_stamp = stamp
         return {"cells_updated": touched, "cells_cleared": cleared}
+
+    def _neighbours(self, points_map, origin, impl) -> None:
+        """Recompute the neighbourhood spread around the cells this frame touched (its points' bounding
+        box, with the camera's position when visibility cleared cells on the rays)."""
+        from . import neighbours
+
+        lo, hi = points_map[:, :2].min(axis=0), points_map[:, :2].max(axis=0)
+        if origin is not None:
+            lo, hi = np.minimum(lo, origin[:2]), np.maximum(hi, origin[:2])
+        raw, _ = self.geometry.map_index(np.array([lo, hi]))
+        if np.any(raw[1] < 0) or np.any(raw[0] >= self.geometry.n):
+            return                                  # the frame lies wholly outside the window
+        ij = np.clip(raw, 0, self.geometry.n - 1)
+        rows, cols = (ij[0, 0], ij[1, 0]), (ij[0, 1], ij[1, 1])
+        if impl == "numba":
+            neighbours.update_neighbour_spread(self.data, self.geometry, self.fusion_params.neighbour_radius, rows,
+                                               cols, self.nthreads)
+        else:
+            neighbours.update_neighbour_spread_reference(self.data, self.geometry,
+                                                         self.fusion_params.neighbour_radius, rows, cols)
 
     def _visibility(self, origin, points_map, height_var, stamp, impl) -> int:
         from . import visibility

@@ -50,6 +50,7 @@ from .layers import (
     LAYERS,
     MAX_HEIGHT,
     MIN_HEIGHT,
+    NEIGHBOUR_SPREAD,
     INFO_SQ_SUM,
     INFO_SUM,
     POINTS,
@@ -112,6 +113,12 @@ class FusionParams:
         estimator, any excess counts; smaller: only a significant excess. None: no spread (tau^2 = 0).
         Measured on the simulated stairs / boxes walks (``elevmap compare``, 60 frames): 2-sigma
         coverage 0.91 / 0.81 with 0.5, 0.90 / 0.79 with 0.1, 0.86 / 0.75 with 1e-3, 0.75 / 0.58 without.
+    neighbour_radius : int
+        Half-width [cells] of the neighbourhood whose disagreement is added to a cell's variance
+        (``neighbour_spread``, see :mod:`elevmap.neighbours`); 0: off. 2 (a 5 x 5 window) by default.
+        The heights do not depend on it, only the variances. Measured on the simulated stairs / boxes
+        walks (``elevmap compare``, 60 frames, seed 0, paper mapper): 2-sigma coverage 0.915 / 0.860 ->
+        0.950 / 0.906, mean NLL 68.2 / 4.4 -> 32.7 / 0.2 with 2; 0.952 / 0.901, NLL 37.8 / 1.1 with 1.
     """
 
     mahalanobis_threshold: float = 2.5
@@ -123,6 +130,7 @@ class FusionParams:
     max_points_per_frame: float | None = None
     scatter_inflation: bool = True
     spread_alpha: float | None = 0.5
+    neighbour_radius: int = 2
 
     def __post_init__(self):
         for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
@@ -142,6 +150,9 @@ class FusionParams:
         if self.spread_alpha is not None and not (isinstance(self.spread_alpha, (int, float))
                                                   and 1e-12 <= self.spread_alpha <= 0.5):
             raise ValueError(f"spread_alpha must be None or in [1e-12, 0.5], got {self.spread_alpha!r}")
+        r = self.neighbour_radius
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or not 0 <= r <= 10:
+            raise ValueError(f"neighbour_radius must be an integer in [0, 10] cells, got {r!r}")
 
     def array(self, resolution_m: float) -> np.ndarray:
         """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off),
@@ -210,6 +221,16 @@ def _dl_tau2(excess, n, s1, s2, spread_z):
 
 
 @njit(**_JIT)
+def _nbr_excess(data, bi, bj):
+    """max(neighbour_spread - spread, 0) of a cell (NaN -> 0): what the neighbourhood adds to its variance
+    beyond its own spread; the fusion works on the variance without it."""
+    t = data[SPREAD, bi, bj]
+    t = t if t > 0.0 else 0.0
+    nb = data[NEIGHBOUR_SPREAD, bi, bj]
+    return nb - t if nb > t else 0.0
+
+
+@njit(**_JIT)
 def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h, stamp,
                 params, WZZ, W0, WZ0, WZZ0, WW0):
     """Combine one cell's frame sums with its prior and write the cell (see the module docstring)."""
@@ -222,7 +243,7 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     if not tau2 >= 0.0:                # NaN (unknown cell)
         tau2 = 0.0
     h_prior = h
-    v = data[VARIANCE, bi, bj] - tau2  # variance of the fused mean
+    v = data[VARIANCE, bi, bj] - tau2 - _nbr_excess(data, bi, bj)  # variance of the fused mean
     if inflate > 0.0 and N >= 2.0:
         chi2 = (WZZ - WZ * WZ / W) / (N - 1.0)
         k = N - 1.0           # chi2 > its 1 - 1e-4 quantile (Wilson-Hilferty), per degree of freedom
@@ -298,9 +319,12 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
             data[layer, bi, bj] = np.nan
         clear_sums(data, bi, bj)
         return
+    nb = data[NEIGHBOUR_SPREAD, bi, bj]
+    nb = nb if (known and not reset and nb > 0.0) else 0.0    # a new or re-initialised cell: none yet
     data[ELEVATION, bi, bj] = h
-    data[VARIANCE, bi, bj] = v + tau2
+    data[VARIANCE, bi, bj] = v + max(tau2, nb)
     data[SPREAD, bi, bj] = tau2
+    data[NEIGHBOUR_SPREAD, bi, bj] = nb
     ub = data[UPPER_BOUND, bi, bj]
     if ub < h:                     # the terrain rose above an old free-space bound: the bound is stale
         data[UPPER_BOUND, bi, bj] = np.nan
@@ -349,7 +373,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
             acc[p, c, A_WZ0] += w0 * zk
             acc[p, c, A_WZZ0] += w0 * zk * zk
             acc[p, c, A_WW0] += w0 * w0
-            if (not np.isnan(h)) and d * d > thr2 * (vk + data[VARIANCE, bi, bj]):
+            if (not np.isnan(h)) and d * d > thr2 * (vk + (data[VARIANCE, bi, bj] - _nbr_excess(data, bi, bj))):
                 acc[p, c, R_W] += w
                 acc[p, c, R_WZ] += w * zk
                 acc[p, c, R_N] += 1.0
@@ -451,10 +475,12 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     z, var = z[inside], height_var[inside]
     hc = None if horizontal_cov is None else horizontal_cov[inside]
     flat = data.reshape(len(LAYERS), n * n)            # a view: writes go to data
-    h0, v0 = flat[ELEVATION, c], flat[VARIANCE, c]
+    tau2_old = np.where(flat[SPREAD] > 0, flat[SPREAD], 0.0)      # NaN (unknown) -> 0
+    nb_old = np.where(flat[NEIGHBOUR_SPREAD] > 0, flat[NEIGHBOUR_SPREAD], 0.0)
+    excess = np.maximum(nb_old - tau2_old, 0.0)      # the neighbourhood's part of the variance (see _nbr_excess)
+    h0, v0 = flat[ELEVATION, c], (flat[VARIANCE] - excess)[c]
     rej = ~np.isnan(h0) & ((z - h0) ** 2 > thr * thr * (var + v0))
     acc = ~rej
-    tau2_old = np.where(flat[SPREAD] > 0, flat[SPREAD], 0.0)      # NaN (unknown) -> 0
     t2 = tau2_old[c]
     w0 = 1.0 / var
     w = np.where(t2 > 0, 1.0 / (var + t2), w0)
@@ -490,7 +516,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
             W, WZ = W * s, WZ * s
             sr = np.where(Nr > cap, cap / np.maximum(Nr, 1), 1.0)
             Wr, WZr = Wr * sr, WZr * sr
-        h, v = flat[ELEVATION].copy(), flat[VARIANCE] - tau2_old
+        h, v = flat[ELEVATION].copy(), flat[VARIANCE] - tau2_old - excess
         known = ~np.isnan(h)
         change = seen & known & (Nr >= change_min) & (Nr > N)
         mr = WZr / Wr
@@ -546,8 +572,10 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     v_post = np.where(write, np.maximum(v_post, min_var), v_post)
     expire = write & (v_post > max_var)
     L[ELEVATION] = np.where(write, h_post, L[ELEVATION])
-    L[VARIANCE] = np.where(write, v_post + tau2, L[VARIANCE])
+    nb = np.where(known & ~reset, nb_old, 0.0)
+    L[VARIANCE] = np.where(write, v_post + np.maximum(tau2, nb), L[VARIANCE])
     L[SPREAD] = np.where(write, tau2, L[SPREAD])
+    L[NEIGHBOUR_SPREAD] = np.where(write, nb, L[NEIGHBOUR_SPREAD])
     with np.errstate(invalid="ignore"):
         stale = write & (L[UPPER_BOUND] < L[ELEVATION])
     L[UPPER_BOUND] = np.where(stale, np.nan, L[UPPER_BOUND])

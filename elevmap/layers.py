@@ -5,15 +5,15 @@ from __future__ import annotations
 from numba import njit
 
 __all__ = ["LAYERS", "ELEVATION", "VARIANCE", "MIN_HEIGHT", "MAX_HEIGHT", "HVAR_X", "HVAR_Y", "HVAR_XY", "TIME",
-           "POINTS", "UPPER_BOUND", "SPREAD", "INFO_SUM", "INFO_SQ_SUM", "SCATTER", "UNKNOWN_VALUES",
-           "ZERO_WHEN_UNKNOWN", "LAYERS_V1"]
+           "POINTS", "UPPER_BOUND", "SPREAD", "INFO_SUM", "INFO_SQ_SUM", "SCATTER", "NEIGHBOUR_SPREAD",
+           "UNKNOWN_VALUES", "ZERO_WHEN_UNKNOWN", "LAYERS_V1", "LAYERS_V2"]
 
 #: Layer names, in storage order. NaN means unknown in every layer but ``points`` and the three
 #: sums behind ``spread`` (0 when unknown).
 LAYERS = (
     "elevation",               # fused height of the cell [m], map frame
     "variance",                # variance of the true height at the cell's centre [m^2]: that of the
-                               # fused mean plus ``spread``
+                               # fused mean plus the larger of ``spread`` and ``neighbour_spread``
     "min_height",              # lowest accepted point since the cell was last reset [m]
     "max_height",              # highest accepted point since the cell was last reset [m]
     "horizontal_variance_x",   # horizontal position uncertainty of the cell [m^2]
@@ -28,9 +28,13 @@ LAYERS = (
     "info_sum",                # sum of 1/sigma_i^2 of the accepted points since the last reset [1/m^2]
     "info_sq_sum",             # sum of 1/sigma_i^4 [1/m^4]
     "scatter",                 # excess scatter Q - (n - 1), Q = sum (z_i - h)^2/sigma_i^2 over the points [-]
+    "neighbour_spread",        # tau^2 of the cell's neighbourhood: the heights of the known cells within
+                               # ``FusionParams.neighbour_radius`` scatter about their weighted mean more than
+                               # their fused variances allow (points bled over an edge, a band of cells fed by
+                               # far grazing pixels) [m^2]; random-effects estimate, see elevmap.neighbours
 )
 (ELEVATION, VARIANCE, MIN_HEIGHT, MAX_HEIGHT, HVAR_X, HVAR_Y, HVAR_XY, TIME, POINTS, UPPER_BOUND, SPREAD, INFO_SUM,
- INFO_SQ_SUM, SCATTER) = range(len(LAYERS))
+ INFO_SQ_SUM, SCATTER, NEIGHBOUR_SPREAD) = range(len(LAYERS))
 
 #: Layers that are 0, not NaN, in an unknown cell (counts and sums).
 ZERO_WHEN_UNKNOWN = ("points", "info_sum", "info_sq_sum", "scatter")
@@ -40,6 +44,8 @@ UNKNOWN_VALUES = tuple(0.0 if name in ZERO_WHEN_UNKNOWN else float("nan") for na
 
 #: The layers of maps saved before ``spread`` existed (loaded with spread 0: no excess scatter).
 LAYERS_V1 = LAYERS[:10]
+#: The layers of maps saved before ``neighbour_spread`` existed (loaded with neighbour_spread 0).
+LAYERS_V2 = LAYERS[:14]
 
 
 def _clear_sums_py(data, bi, bj):

@@ -49,7 +49,7 @@ from .elevation_map import ElevationMap
 from .fileio import atomic_output
 from .fusion import FusionParams
 from .grid import GridGeometry
-from .layers import ELEVATION, LAYERS, LAYERS_V1, UNKNOWN_VALUES, VARIANCE
+from .layers import ELEVATION, LAYERS, LAYERS_V1, LAYERS_V2, UNKNOWN_VALUES, VARIANCE
 
 __all__ = [
     "height_at",
@@ -606,7 +606,7 @@ def _load(path, cls):
         return a[()]
 
     names = text("layers")
-    if names not in (list(LAYERS), list(LAYERS_V1)):
+    if names not in (list(LAYERS), list(LAYERS_V1), list(LAYERS_V2)):
         raise bad(f"layers {names} do not match this version's {list(LAYERS)}")
     n = int(scalar("n", "iu"))
     res = float(scalar("resolution_m", "f"))
@@ -622,7 +622,9 @@ def _load(path, cls):
         extra = np.empty((len(LAYERS) - len(names), n, n))
         extra[:] = np.array(UNKNOWN_VALUES[len(names):])[:, None, None]
         known = np.isfinite(data[LAYERS.index("elevation")])
-        extra[LAYERS.index("spread") - len(names)][known] = 0.0
+        for name in ("spread", "neighbour_spread"):
+            if LAYERS.index(name) >= len(names):
+                extra[LAYERS.index(name) - len(names)][known] = 0.0
         data = np.concatenate([data, extra])
     params = text("fusion_params")
     settings = text("settings")

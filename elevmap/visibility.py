@@ -56,7 +56,9 @@ from numba import njit, prange
 from noise_model.kernels import FASTMATH, resolve_threads
 
 from .fusion import PARTIALS
-from .layers import ELEVATION, LAYERS, TIME, UNKNOWN_VALUES, UPPER_BOUND, VARIANCE, clear_sums
+from .fusion import _nbr_excess
+from .layers import (ELEVATION, LAYERS, NEIGHBOUR_SPREAD, SPREAD, TIME, UNKNOWN_VALUES, UPPER_BOUND, VARIANCE,
+                     clear_sums)
 
 __all__ = ["visibility_cleanup", "visibility_cleanup_reference"]
 
@@ -331,7 +333,10 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
         if bj >= n:
             bj -= n
         h = data[ELEVATION, bi, bj]
-        if (not np.isnan(h)) and data[TIME, bi, bj] != stamp and cm < h - 3.0 * math.sqrt(data[VARIANCE, bi, bj]):
+        # the cell's own variance, without its neighbourhood's disagreement (which is about where an edge
+        # lies, not about whether this cell's height is right)
+        if (not np.isnan(h)) and data[TIME, bi, bj] != stamp and cm < h - 3.0 * math.sqrt(
+                data[VARIANCE, bi, bj] - _nbr_excess(data, bi, bj)):
             for layer in range(data.shape[0]):
                 data[layer, bi, bj] = np.nan
             clear_sums(data, bi, bj)
@@ -467,7 +472,9 @@ def visibility_cleanup_reference(data, geometry, sensor_origin_map, points_map, 
     # 4.-5. apply, in buffer order
     ceil_b = g.wrap(ceiling)
     crossed = np.isfinite(ceil_b)
-    h, v, t, ub = data[ELEVATION], data[VARIANCE], data[TIME], data[UPPER_BOUND]
+    h, t, ub = data[ELEVATION], data[TIME], data[UPPER_BOUND]
+    s = np.where(data[SPREAD] > 0, data[SPREAD], 0.0)
+    v = data[VARIANCE] - np.maximum(np.where(data[NEIGHBOUR_SPREAD] > 0, data[NEIGHBOUR_SPREAD], 0.0) - s, 0.0)
     with np.errstate(invalid="ignore"):
         clear = crossed & np.isfinite(h) & (t != stamp) & (ceil_b < h - 3.0 * np.sqrt(v))
         lower = crossed & ~clear & (np.isnan(ub) | (ceil_b < ub))

@@ -129,10 +129,16 @@ def test_height_at_after_a_move_with_wrap_around():
 
 
 def test_height_at_after_a_real_update():
-    m = small_map()
+    m = ElevationMap(length_m=3.0, resolution_m=1.0, fusion_params=FusionParams(neighbour_radius=0))
     m.update(np.array([[0.5, 0.5, 1.0], [-0.5, 0.5, 3.0]]), np.array([1e-4, 1e-4]))
     h, v = m.height_at([0.0, 0.5])
     assert h == pytest.approx(2.0) and v == pytest.approx(1e-4)
+    # with the neighbourhood spread, two neighbours 2 m apart with variances 1e-4 are not both right:
+    # each gets tau^2 = (Q - 1) / (S1 - S2 / S1) = (2e4 - 1) / 1e4: Q = 1e4 (1^2 + 1^2), S1 = 2e4, S2 = 2e8
+    m = small_map()
+    m.update(np.array([[0.5, 0.5, 1.0], [-0.5, 0.5, 3.0]]), np.array([1e-4, 1e-4]))
+    h, v = m.height_at([0.0, 0.5])
+    assert h == pytest.approx(2.0) and v == pytest.approx(1e-4 + (2e4 - 1) / 1e4)
 
 
 def random_map(rng, n_cells=12, res=0.25, move=(0.9, -1.3)) -> ElevationMap:
@@ -437,29 +443,36 @@ def test_save_load_round_trip_is_bit_exact(tmp_path):
     assert type(q.load(path)) is ElevationMap
 
 
-def test_maps_saved_before_the_spread_layers_still_load(tmp_path):
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_maps_saved_before_the_spread_layers_still_load(tmp_path, version):
     import json
 
-    from elevmap.layers import LAYERS, LAYERS_V1
+    from elevmap.layers import LAYERS, LAYERS_V1, LAYERS_V2
 
+    old_layers, dropped = {"v1": (LAYERS_V1, ("spread_alpha", "neighbour_radius")),
+                           "v2": (LAYERS_V2, ("neighbour_radius",))}[version]
     m = busy_map()
     path = tmp_path / "map.npz"
     m.save(path)
     with np.load(path) as z:
         arrays = {k: z[k] for k in z.files}
-    arrays["data"] = arrays["data"][: len(LAYERS_V1)]
-    arrays["layers"] = np.array(json.dumps(list(LAYERS_V1)))
+    arrays["data"] = arrays["data"][: len(old_layers)]
+    arrays["layers"] = np.array(json.dumps(list(old_layers)))
     fp = json.loads(str(arrays["fusion_params"]))
-    fp.pop("spread_alpha")
+    for key in dropped:
+        fp.pop(key)
     arrays["fusion_params"] = np.array(json.dumps(fp))
     old = tmp_path / "old.npz"
     np.savez(old, **arrays)
     r = ElevationMap.load(old)
     assert r.data.shape[0] == len(LAYERS)
-    np.testing.assert_array_equal(r.data[: len(LAYERS_V1)], m.data[: len(LAYERS_V1)])
+    np.testing.assert_array_equal(r.data[: len(old_layers)], m.data[: len(old_layers)])
     known = r.is_known()
-    assert (r.layer("spread")[known] == 0).all() and np.isnan(r.layer("spread")[~known]).all()
-    assert (r.layer("info_sum") == 0).all() and (r.layer("scatter") == 0).all()
+    new = ["neighbour_spread"] + (["spread"] if version == "v1" else [])
+    for name in new:
+        assert (r.layer(name)[known] == 0).all() and np.isnan(r.layer(name)[~known]).all()
+    if version == "v1":
+        assert (r.layer("info_sum") == 0).all() and (r.layer("scatter") == 0).all()
     r.update(np.column_stack([np.zeros((10, 2)), np.zeros(10)]), np.full(10, 1e-4), stamp=9.0)   # and it goes on
 
 
