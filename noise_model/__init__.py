@@ -30,10 +30,10 @@ from .checks import (
     check_transforms,
 )
 from .covariance import point_covariances, pose_jacobian, skew, to_map_frame
-from .d435 import D435, THETA_MAX_DEFAULT, SensorModel, axial_sigma, expected_rms_error
+from .d435 import D435, THETA_MAX_DEFAULT, THETA_QUADRATURE, SensorModel, axial_sigma, axial_variance, expected_rms_error
 from . import alternatives, effects, kernels, scene, sim
 from .effects import EFFECTS, correlated_noise, depth_bias
-from .geometry import deproject, depth_edges, depth_to_metres, default_block_px, incidence_angles
+from .geometry import deproject, depth_edges, depth_to_metres, default_block_px, incidence_angle_stats, incidence_angles
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 from .scene import (
     Box,
@@ -55,10 +55,13 @@ __all__ = [
     "SensorModel",
     "THETA_MAX_DEFAULT",
     "axial_sigma",
+    "axial_variance",
+    "THETA_QUADRATURE",
     "expected_rms_error",
     "depth_to_metres",
     "deproject",
     "incidence_angles",
+    "incidence_angle_stats",
     "depth_edges",
     "default_block_px",
     "point_covariances",

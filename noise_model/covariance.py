@@ -40,7 +40,7 @@ from .checks import (
     check_positive_scalar,
     check_transform,
 )
-from .d435 import D435, SensorModel, _axial_sigma_unchecked
+from .d435 import D435, SensorModel, _axial_sigma_unchecked, _axial_variance_unchecked
 
 __all__ = ["point_covariances", "to_map_frame", "skew", "pose_jacobian", "PIXEL_VARIANCE_PX2"]
 
@@ -70,7 +70,8 @@ def pose_jacobian(points_cam, T_map_cam) -> np.ndarray:
 
 
 def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx: float | None = None,
-                      fy: float | None = None, model: SensorModel = D435, z_noise=None) -> np.ndarray:
+                      fy: float | None = None, model: SensorModel = D435, z_noise=None,
+                      theta_std=None) -> np.ndarray:
     """Camera-frame covariance of each point under the D435 noise model.
 
     Parameters
@@ -89,6 +90,10 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
     z_noise : array_like, shape (N,), optional
         Depth [m] at which sigma_z is evaluated (default: the points' own z). Pass a denoised depth
         (:func:`noise_model.plane_depths`) so that a point's weight does not depend on its own noise.
+    theta_std : array_like, shape (N,), optional
+        Standard deviation of the estimated theta [rad] (:func:`noise_model.incidence_angle_stats`); the
+        axial variance is then E[sigma_z^2] over the angle's uncertainty
+        (:func:`noise_model.axial_variance`) instead of sigma_z(theta)^2.
 
     Returns
     -------
@@ -112,8 +117,15 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
         zs = np.asarray(z_noise, dtype=np.float64)
         if zs.shape != (n,) or not np.all(np.isfinite(zs)) or (n and float(zs.min()) <= 0):
             raise ValueError(f"z_noise must be ({n},) finite depths > 0 [m]")
-    sz = _axial_sigma_unchecked(zs, th, model)
-    cov = (sz * sz)[:, None, None] * (r[:, :, None] * r[:, None, :])
+    if theta_std is None:
+        sz = _axial_sigma_unchecked(zs, th, model)
+        s2 = sz * sz
+    else:
+        ts = np.asarray(theta_std, dtype=np.float64)
+        if ts.shape != (n,) or not np.all(np.isfinite(ts)) or (n and float(ts.min()) < 0):
+            raise ValueError(f"theta_std must be ({n},) finite standard deviations >= 0 [rad]")
+        s2 = _axial_variance_unchecked(zs, th, ts, model)
+    cov = s2[:, None, None] * (r[:, :, None] * r[:, None, :])
     var_x = z * z * (PIXEL_VARIANCE_PX2 / (fx * fx))
     var_y = z * z * (PIXEL_VARIANCE_PX2 / (fy * fy))
     var_x = np.where(left, model.sigma_L ** 2, var_x)

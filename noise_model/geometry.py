@@ -18,6 +18,7 @@ __all__ = [
     "depth_to_metres",
     "deproject",
     "incidence_angles",
+    "incidence_angle_stats",
     "depth_edges",
     "default_block_px",
     "plane_depths",
@@ -156,6 +157,11 @@ def incidence_angles(points_cam, block_px: int | None = None, min_points: int = 
     return theta
 
 
+#: A window's residual mean square of inverse depth below this fraction of its squared mean is the
+#: rounding of the raw moments (sum w^2 / n - mean(w)^2), not noise: the angle's standard deviation is
+#: then 0. Real D435 noise is >= ~1e-5 of it (1 mm at 0.3 m).
+RSS_FLOOR_REL = 1e-12
+
 #: Half-width of the normal-estimation window, in blocks (the window is 5 x 5 blocks).
 WINDOW_RADIUS_BLOCKS = 2
 
@@ -165,23 +171,95 @@ def _block_theta_numpy(p, valid, b, min_points):
     return _block_planes_numpy(p, valid, b, min_points)[0]
 
 
+def incidence_angle_stats(points_cam, block_px: int | None = None, min_points: int = NORMAL_MIN_POINTS):
+    """Incidence angle theta [rad] per pixel, as :func:`incidence_angles`, and the standard deviation of
+    that estimate [rad].
+
+    The plane fit w = alpha u' + beta v' + gamma over a window is ordinary least squares with noise-free
+    regressors, so its parameters have covariance s^2 (X^T X)^-1 with s^2 = RSS / (n - 3) the residual
+    variance of the window's inverse depths; theta = atan2(|(alpha, beta)|, |gamma|) carries it to first
+    order (delta method). On a noisy or grazing surface (a floor seen 2 m ahead) the window's theta is
+    uncertain by several degrees, and where the window straddles two surfaces the residuals, and so
+    the standard deviation, grow: both are what :func:`noise_model.axial_variance` integrates over.
+
+    Returns
+    -------
+    theta, theta_std : ndarray, shape (H, W), float64 [rad]
+        NaN where the pixel is invalid; theta_std is 0 where theta falls back to 0 (too few points,
+        degenerate window) or the window holds no more than 3 points.
+    """
+    p, valid = _valid_points(points_cam)
+    H, W = valid.shape
+    b = default_block_px(W) if block_px is None else int(block_px)
+    if b < 1:
+        raise ValueError(f"block_px must be >= 1, got {block_px}")
+    S = _block_moments_numpy(p, valid, b)
+    theta, alpha, beta, gamma, ok = _planes_from_inverse_depth_moments(S, int(min_points))
+    std = _theta_std_from_moments_numpy(S, alpha, beta, gamma, ok)
+    out = []
+    for a in (theta, std):
+        a = np.repeat(np.repeat(a, b, axis=0), b, axis=1)[:H, :W].copy()
+        a[~valid] = np.nan
+        out.append(a)
+    return out[0], out[1]
+
+
+def _theta_std_from_moments_numpy(S, alpha, beta, gamma, ok):
+    """Standard deviation [rad] of theta = atan2(|(alpha, beta)|, |gamma|) of the plane fit of the summed
+    moments S (..., 10) = (n, su, sv, sw, suu, suv, svv, suw, svw, sww); 0 where not ok or n <= 3."""
+    n = S[..., 0]
+    ok = ok & (n > 3)
+    nn = np.where(ok, n, 4.0)
+    mu, mv, mw = S[..., 1] / nn, S[..., 2] / nn, S[..., 3] / nn
+    cuu = S[..., 4] / nn - mu * mu
+    cuv = S[..., 5] / nn - mu * mv
+    cvv = S[..., 6] / nn - mv * mv
+    cuw = S[..., 7] / nn - mu * mw
+    cvw = S[..., 8] / nn - mv * mw
+    cww = S[..., 9] / nn - mw * mw
+    det = np.where(ok, cuu * cvv - cuv * cuv, 1.0)
+    rss = cww - alpha * cuw - beta * cvw                           # RSS / n
+    rss = np.where(rss > RSS_FLOOR_REL * mw * mw, rss, 0.0)        # below the moments' rounding: 0
+    f = rss / (nn - 3.0) / det                                     # s^2 / (n det)
+    vaa, vbb, vab = f * cvv, f * cuu, -f * cuv
+    vgg = rss / (nn - 3.0) + mu * mu * vaa + 2.0 * mu * mv * vab + mv * mv * vbb
+    vag = -(mu * vaa + mv * vab)
+    vbg = -(mu * vab + mv * vbb)
+    rho = np.hypot(alpha, beta)
+    q = rho * rho + gamma * gamma
+    qq = np.where(q > 0, q, 1.0)
+    ag = np.abs(gamma)
+    rr = np.where(rho > 0, rho, 1.0)
+    ja = np.where(rho > 0, ag * alpha / (rr * qq), 0.0)
+    jb = np.where(rho > 0, ag * beta / (rr * qq), 0.0)
+    jg = -rho * np.sign(gamma) / qq
+    var = (ja * ja * vaa + jb * jb * vbb + jg * jg * vgg + 2.0 * ja * jb * vab + 2.0 * ja * jg * vag
+           + 2.0 * jb * jg * vbg)
+    return np.where(ok & (q > 0), np.sqrt(np.maximum(var, 0.0)), 0.0)
+
+
 def _block_planes_numpy(p, valid, b, min_points):
     """Per-block (theta, alpha, beta, gamma, ok) of the inverse-depth plane fit 1/z = alpha u' + beta v' + gamma
     over the 5 x 5 blocks around each block (NumPy reference of the numba kernel)."""
+    return _planes_from_inverse_depth_moments(_block_moments_numpy(p, valid, b), min_points)
+
+
+def _block_moments_numpy(p, valid, b):
+    """Per block, the moments (n, su, sv, sw, suu, suv, svv, suw, svw, sww) of u', v' and w = 1 / z summed
+    over the 5 x 5 blocks around it, shape (nby, nbx, 10)."""
     H, W = valid.shape
     nby, nbx = -(-H // b), -(-W // b)
     vv, uu = np.nonzero(valid)
     cell = (vv // b) * nbx + (uu // b)
     z = p[vv, uu, 2]
     up, vp, w = p[vv, uu, 0] / z, p[vv, uu, 1] / z, 1.0 / z
-    weights = (None, up, vp, w, up * up, up * vp, vp * vp, up * w, vp * w)
+    weights = (None, up, vp, w, up * up, up * vp, vp * vp, up * w, vp * w, w * w)
     M = np.stack([np.bincount(cell, weights=x, minlength=nby * nbx) for x in weights], axis=1)
-    M = M.reshape(nby, nbx, 9)
+    M = M.reshape(nby, nbx, 10)
     r = WINDOW_RADIUS_BLOCKS
-    padded = np.zeros((nby + 2 * r, nbx + 2 * r, 9))
+    padded = np.zeros((nby + 2 * r, nbx + 2 * r, 10))
     padded[r:-r, r:-r] = M
-    S = sum(padded[i:i + nby, j:j + nbx] for i in range(2 * r + 1) for j in range(2 * r + 1))
-    return _planes_from_inverse_depth_moments(S, min_points)
+    return sum(padded[i:i + nby, j:j + nbx] for i in range(2 * r + 1) for j in range(2 * r + 1))
 
 
 def _theta_from_inverse_depth_moments(S, min_points):

@@ -24,6 +24,7 @@ from .checks import check_depth, check_intrinsics, check_pose_cov, check_positiv
 from .covariance import point_covariances, to_map_frame
 from .d435 import D435, SensorModel
 from .geometry import (
+    RSS_FLOOR_REL,
     EDGE_JUMP_REL,
     EDGE_JUMP_SIGMAS,
     NORMAL_MIN_POINTS,
@@ -33,16 +34,21 @@ from .geometry import (
     deproject,
     depth_edges,
     depth_to_metres,
-    incidence_angles,
+    incidence_angle_stats,
     plane_depths,
 )
-from .d435 import _axial_sigma_unchecked
+from .d435 import THETA_GRID, THETA_QUADRATURE, _axial_sigma_unchecked
 
 __all__ = ["MapPoints", "Workspace", "depth_to_map_points", "depth_to_map_points_reference", "FASTMATH", "resolve_threads"]
 
 #: numba fastmath flags: no nnan/ninf (isnan must work), no arcp (exact division for binning).
 FASTMATH = {"nsz", "contract", "afn", "reassoc"}
 _JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
+
+_GH_X = np.array(THETA_QUADRATURE[0])
+_GH_W = np.array(THETA_QUADRATURE[1])
+_GRID_X = np.array(THETA_GRID[0])
+_GRID_W = np.array(THETA_GRID[1])
 
 #: sigma_z is evaluated at the local plane's depth when the pixel lies within this many sigma of it.
 NOISE_DEPTH_SIGMAS = 3.0
@@ -137,9 +143,64 @@ def _plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
     return math.atan2(math.hypot(alpha, beta), abs(gamma)), alpha, beta, gamma, True
 
 
+@njit(**_JIT)
+def _theta_std_from_moments(S, alpha, beta, gamma):
+    """Standard deviation [rad] of the plane fit's theta from the summed moments S (10,); numba version of
+    :func:`noise_model.geometry._theta_std_from_moments_numpy` (the caller passes only fitted planes)."""
+    n = S[0]
+    if not n > 3.0:
+        return 0.0
+    mu, mv, mw = S[1] / n, S[2] / n, S[3] / n
+    cuu = S[4] / n - mu * mu
+    cuv = S[5] / n - mu * mv
+    cvv = S[6] / n - mv * mv
+    cuw = S[7] / n - mu * mw
+    cvw = S[8] / n - mv * mw
+    cww = S[9] / n - mw * mw
+    det = cuu * cvv - cuv * cuv
+    rss = cww - alpha * cuw - beta * cvw
+    rss = rss if rss > RSS_FLOOR_REL * mw * mw else 0.0      # below the rounding of the raw moments: 0
+    f = rss / (n - 3.0) / det
+    vaa = f * cvv
+    vbb = f * cuu
+    vab = -f * cuv
+    vgg = rss / (n - 3.0) + mu * mu * vaa + 2.0 * mu * mv * vab + mv * mv * vbb
+    vag = -(mu * vaa + mv * vab)
+    vbg = -(mu * vab + mv * vbb)
+    rho = math.hypot(alpha, beta)
+    q = rho * rho + gamma * gamma
+    if not q > 0.0:
+        return 0.0
+    ag = abs(gamma)
+    ja = ag * alpha / (rho * q) if rho > 0.0 else 0.0
+    jb = ag * beta / (rho * q) if rho > 0.0 else 0.0
+    sg = 1.0 if gamma > 0.0 else (-1.0 if gamma < 0.0 else 0.0)
+    jg = -rho * sg / q
+    var = (ja * ja * vaa + jb * jb * vbb + jg * jg * vgg + 2.0 * ja * jb * vab + 2.0 * ja * jg * vag
+           + 2.0 * jb * jg * vbg)
+    return math.sqrt(max(var, 0.0))
+
+
+@njit(**_JIT)
+def _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw):
+    """(E[g], E[g^2]) of the angle gain for theta ~ N(t, ts^2): the Gauss-Hermite nodes hx, weights hw
+    where t +- 4 ts lies inside (0, theta_max), else the grid gx, gw (THETA_QUADRATURE, THETA_GRID)."""
+    if not (t - 4.0 * ts > 0.0 and t + 4.0 * ts < theta_max):
+        hx = gx
+        hw = gw
+    eg = 0.0
+    eg2 = 0.0
+    for k in range(hx.shape[0]):
+        tk = min(abs(t + ts * hx[k]), theta_max)
+        g = ct * tk / ((0.5 * math.pi - tk) * (0.5 * math.pi - tk))
+        eg = eg + hw[k] * g
+        eg2 = eg2 + hw[k] * (g * g)
+    return eg, eg2
+
+
 @njit(parallel=True, **_JIT)
 def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params, zrange, block, radius,
-                         min_points, degenerate_rel, bin_at_plane, pts, hvar, hcov, pix):
+                         min_points, degenerate_rel, bin_at_plane, hx, hw, gx, gw, pts, hvar, hcov, pix):
     """Fill columns 0..N-1 of pts (3, n), hvar (n,), hcov (3, n), pix (n,) with the frame's valid
     pixels in row-major order; return N.
 
@@ -168,13 +229,13 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     for v in range(H):
         vp[v] = (v - cy) * inv_fy
 
-    # pass 1: per block, the moments (n, su, sv, sw, suu, suv, svv, suw, svw) of u', v' and w = 1 / z
+    # pass 1: per block, the moments (n, su, sv, sw, suu, suv, svv, suw, svw, sww) of u', v' and w = 1 / z
     # over its valid pixels, and the valid count per row. u' is constant down a column and v' along a
-    # row, so per block row only five column sums are needed: n, sum v', sum v'^2, sum w, sum v' w;
+    # row, so per block row only six column sums are needed: n, sum v', sum v'^2, sum w, sum v' w, sum w^2;
     # the u' factors are applied once per column when the columns are summed into blocks. The pixel
     # loop is branch-free (selects) so that it vectorises. zmin > 0 and zmax are finite (_prepare
     # checks them), so zmin <= z <= zmax also rejects 0, NaN, +-inf and negative depth.
-    M = np.empty((nby, nbx, 9))
+    M = np.empty((nby, nbx, 10))
     rowcount = np.empty(H, dtype=np.int64)
     for by in prange(nby):
         cn = np.zeros(W)
@@ -182,6 +243,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
         cvv = np.zeros(W)
         cw = np.zeros(W)
         cvw = np.zeros(W)
+        cww = np.zeros(W)
         for v in range(by * b, min(H, by * b + b)):
             vv = vp[v]
             vv2 = vv * vv
@@ -196,10 +258,11 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 cvv[u] += f * vv2
                 cw[u] += w
                 cvw[u] += vv * w
+                cww[u] += w * w
                 cnt += 1 if ok else 0
             rowcount[v] = cnt
         for bx in range(nbx):
-            n = su = sv = sw = suu = suv = svv = suw = svw = 0.0
+            n = su = sv = sw = suu = suv = svv = suw = svw = sww = 0.0
             for u in range(bx * b, min(W, bx * b + b)):
                 r = up[u]
                 n += cn[u]
@@ -211,6 +274,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 svv += cvv[u]
                 suw += r * cw[u]
                 svw += cvw[u]
+                sww += cww[u]
             M[by, bx, 0] = n
             M[by, bx, 1] = su
             M[by, bx, 2] = sv
@@ -220,39 +284,49 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
             M[by, bx, 6] = svv
             M[by, bx, 7] = suw
             M[by, bx, 8] = svw
+            M[by, bx, 9] = sww
 
     # pass 2: theta of each block from the (2 radius + 1)^2 blocks around it, as the gain of the axial
     # theta term c_theta theta / (pi/2 - theta)^2, spread over the block's pixel columns. The window
     # sum is separable: over the block rows first (Vs), then over the block columns.
     gain_px = np.empty((nby, W))
+    # E[g] and E[g^2] over the uncertainty of the block's theta, for the axial variance
+    eg_px = np.empty((nby, W))
+    eg2_px = np.empty((nby, W))
     # the block's plane w = alpha u' + beta v' + gamma per pixel column (gamma NaN: no plane), for the
     # denoised depth at which sigma_z is evaluated
     alpha_px = np.empty((nby, W))
     beta_px = np.empty((nby, W))
     gamma_px = np.empty((nby, W))
     for by in prange(nby):
-        Vs = np.zeros((nbx, 9))
+        Vs = np.zeros((nbx, 10))
         for i in range(max(0, by - radius), min(nby, by + radius + 1)):
             for bx in range(nbx):
-                for c in range(9):
+                for c in range(10):
                     Vs[bx, c] += M[i, bx, c]
-        S = np.empty(9)
+        S = np.empty(10)
         for bx in range(nbx):
             g = 0.0
+            eg = 0.0
+            eg2 = 0.0
             pa = pb = 0.0
             pg = np.nan
             if M[by, bx, 0] > 0.0:      # a block without valid pixels needs no gain
                 S[:] = 0.0
                 for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
-                    for c in range(9):
+                    for c in range(10):
                         S[c] += Vs[j, c]
                 t, pa, pb, pg, ok = _plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
+                ts = _theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
                 if not ok:
                     pg = np.nan
+                eg, eg2 = _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw)
                 t = min(t, theta_max)
                 g = ct * t / ((0.5 * math.pi - t) * (0.5 * math.pi - t))
             for u in range(bx * b, min(W, bx * b + b)):
                 gain_px[by, u] = g
+                eg_px[by, u] = eg
+                eg2_px[by, u] = eg2
                 alpha_px[by, u] = pa
                 beta_px[by, u] = pb
                 gamma_px[by, u] = pg
@@ -349,8 +423,10 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 sf = max(c0 + c1 * zf + c2 * zf * zf + g * zf * math.sqrt(zf),
                          c0 + c1 * z + c2 * zz + g * z * math.sqrt(z))
                 zs = zf if abs(z - zf) <= noise_sigmas * sf else z
-                sig = c0 + c1 * zs + c2 * zs * zs + g * zs * math.sqrt(zs)
-                s2 = sig * sig
+                # E[sigma_z^2] over the uncertainty of theta (noise_model.axial_variance)
+                a_s = c0 + c1 * zs + c2 * zs * zs
+                k_s = zs * math.sqrt(zs)
+                s2 = a_s * a_s + 2.0 * a_s * k_s * eg_px[by, u] + k_s * k_s * eg2_px[by, u]
                 ru = up[u]
                 a0 = R00 * ru + b0
                 a1 = R10 * ru + b1
@@ -459,7 +535,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         N = _depth_to_map_kernel(d, scale, intr, T, np.zeros((6, 6)) if P is None else P, P is not None,
                                  model.params_array(), edge, np.array([zmin, zmax]), b, WINDOW_RADIUS_BLOCKS,
                                  NORMAL_MIN_POINTS,
-                                 _DEGENERATE_REL, bool(bin_at_plane), ws.points_map, ws.height_var, ws.horizontal_cov,
+                                 _DEGENERATE_REL, bool(bin_at_plane), _GH_X, _GH_W, _GRID_X, _GRID_W, ws.points_map, ws.height_var,
+                                 ws.horizontal_cov,
                                  ws.pixel)
     finally:
         numba.set_num_threads(previous)
@@ -475,14 +552,14 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
                                   bin_at_plane: bool = True) -> MapPoints:
     """NumPy reference of :func:`depth_to_map_points`, composed of the public functions.
 
-    depth_to_metres -> deproject -> incidence_angles -> depth_edges -> point_covariances ->
+    depth_to_metres -> deproject -> incidence_angle_stats -> depth_edges -> point_covariances ->
     to_map_frame.
     """
     d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
                                                 max_depth_m, block_px)
     z = depth_to_metres(d, None if d.dtype != np.uint16 else scale, zmin, zmax)
     pts = deproject(z, K)
-    theta = incidence_angles(pts, block_px=b)
+    theta, theta_std = incidence_angle_stats(pts, block_px=b)
     z_fit = plane_depths(pts, block_px=b)
     # sigma_z at the denoised depth where the local plane describes the pixel (within 3 of the smaller
     # of the two sigmas, and inside the valid range), else at the pixel's own depth (edges, where the
@@ -500,7 +577,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     pix = np.flatnonzero(valid.ravel())
     p = pts.reshape(-1, 3)[pix]
     cov = point_covariances(p, theta.ravel()[pix], left.ravel()[pix], right.ravel()[pix], fx=K[0, 0],
-                            fy=K[1, 1], model=model, z_noise=z_noise.ravel()[pix])
+                            fy=K[1, 1], model=model, z_noise=z_noise.ravel()[pix], theta_std=theta_std.ravel()[pix])
     cov_map = to_map_frame(cov, p, T, P)
     points_map = p @ T[:3, :3].T + T[:3, 3]
     if bin_at_plane:          # x, y where the ray meets the local plane, z from the measured depth

@@ -157,3 +157,18 @@ def test_stacks_of_transforms_are_validated_naming_the_bad_one(rng):
         check_transforms(bad)
     with pytest.raises(ValueError, match=r"shape \(N, 4, 4\)"):
         check_transforms(np.eye(4))
+
+
+def test_point_covariances_with_an_uncertain_angle_use_the_expected_variance(rng):
+    from noise_model import axial_variance, point_covariances
+
+    p = np.column_stack([rng.uniform(-0.5, 0.5, 20), rng.uniform(-0.3, 0.3, 20), rng.uniform(0.5, 3.0, 20)])
+    th, ts = rng.uniform(0, 1.3, 20), rng.uniform(0, 0.2, 20)
+    c = point_covariances(p, th, theta_std=ts)
+    c0 = point_covariances(p, th)
+    r = p / p[:, 2:]
+    ax = axial_variance(p[:, 2], th, ts) - axial_variance(p[:, 2], th, 0.0)
+    np.testing.assert_allclose(c - c0, ax[:, None, None] * r[:, :, None] * r[:, None, :], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(point_covariances(p, th, theta_std=np.zeros(20)), c0, rtol=1e-12)
+    with pytest.raises(ValueError, match="theta_std"):
+        point_covariances(p, th, theta_std=np.full(19, 0.1))

@@ -109,3 +109,26 @@ def test_public_api_names():
     for name in ("D435", "axial_sigma", "expected_rms_error", "deproject", "incidence_angles", "depth_edges",
                  "point_covariances", "to_map_frame", "depth_to_map_points", "depth_to_map_points_reference"):
         assert hasattr(nm, name)
+
+
+def test_axial_variance_is_the_expected_square_over_the_angle():
+    from noise_model import axial_variance
+
+    # no angle uncertainty: sigma_z^2
+    assert axial_variance(1.5, 0.9, 0.0) == pytest.approx(axial_sigma(1.5, 0.9) ** 2, rel=1e-12)
+    # against a dense integral of sigma_z(theta)^2 over N(theta_hat, s^2) (sign ignored, capped at 80 deg):
+    # within 1 % where the gain is smooth over +-4 s (Gauss-Hermite), 6 % across its kinks (the grid)
+    for th in np.linspace(0.0, 1.55, 32):
+        for s in (0.005, 0.02, 0.05, 0.1, 0.26):
+            t = np.linspace(th - 8 * s, th + 8 * s, 20001)
+            w = np.exp(-0.5 * ((t - th) / s) ** 2)
+            dense = np.sum(w * axial_sigma(2.0, t) ** 2) / np.sum(w)
+            smooth = th - 4 * s > 0 and th + 4 * s < D435.theta_max_rad
+            assert axial_variance(2.0, th, s) == pytest.approx(dense, rel=0.01 if smooth else 0.06)
+    # the gain is convex in theta: an uncertain angle means more noise on average, never less
+    assert axial_variance(1.0, 1.05, 0.1) > axial_sigma(1.0, 1.05) ** 2 * 1.05
+    np.testing.assert_allclose(axial_variance(np.array([1.0, 2.0]), 0.5, np.array([0.0, 0.1])).shape, (2,))
+    with pytest.raises(ValueError, match="theta_std"):
+        axial_variance(1.0, 0.5, -0.1)
+    with pytest.raises(ValueError, match="radians"):
+        axial_variance(1.0, 0.5, 10.0)
