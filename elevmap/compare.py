@@ -375,7 +375,7 @@ def _truth_grid(emap: ElevationMap, truth) -> np.ndarray:
 def _score(emap: ElevationMap, truth, times) -> dict:
     err = map_error(emap, truth)
     var = emap.layer("variance")
-    known = np.isfinite(emap.layer("elevation"))
+    known = emap.is_known()
     t = np.asarray(times, dtype=np.float64) if len(times) else np.array([math.nan])
     out = {"rmse_m": err["rmse_m"], "p95_abs_m": err["p95_abs_m"], "nll": err["nll"],
            "coverage_1sigma": err["coverage_1sigma"], "coverage_2sigma": err["coverage_2sigma"],
@@ -545,9 +545,9 @@ def _common_scores(maps: dict, truth) -> dict:
     tr = _truth_grid(first, truth)
     mask = np.ones(tr.shape, dtype=bool)
     for m in maps.values():
-        mask &= np.isfinite(m.layer("elevation"))
+        mask &= m.is_known()
     return {"cells": int(mask.sum()),
-            "mappers": {name: _cell_scores(m.layer("elevation"), m.layer("variance"), tr, mask)
+            "mappers": {name: _cell_scores(m.known_layer("elevation"), m.known_layer("variance"), tr, mask)
                         for name, m in maps.items()}}
 
 
@@ -627,7 +627,7 @@ class _CompareLogger:
             if err["known_cells"]:
                 viz.log_scalar(rec, f"plots/rmse_m/{name}", err["rmse_m"])
                 viz.log_scalar(rec, f"plots/coverage_2sigma/{name}", err["coverage_2sigma"])
-                var = emap.layer("variance")
+                var = emap.known_layer("variance")
                 viz.log_scalar(rec, f"plots/mean_sigma_m/{name}", float(np.nanmean(np.sqrt(var))))
         return on_frame
 
@@ -642,7 +642,7 @@ class _CompareLogger:
         viz.log_trail(rec, "maps/truth/trail", self.trail)
         e = ERROR_COLOR_RANGE_M
         for name, emap in maps.items():
-            h, v = emap.layer("elevation"), emap.layer("variance")
+            h, v = emap.known_layer("elevation"), emap.known_layer("variance")
             err = h - tr
             viz.log_height_mesh(rec, f"maps/{name}/elevation", xs, ys, h, viz.colormap(h, lo, hi))
             viz.log_height_mesh(rec, f"maps/{name}/error", xs, ys, h, viz.colormap(err, -e, e))

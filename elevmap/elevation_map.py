@@ -101,9 +101,18 @@ class ElevationMap:
         unwrapped = self.geometry.unwrap(self.data)
         return {name: unwrapped[k] for k, name in enumerate(LAYERS)}
 
+    def known_layer(self, name: str) -> np.ndarray:
+        """A layer as consumers see it: :meth:`layer` with NaN wherever the cell is not known."""
+        return np.where(self.is_known(), self.layer(name), np.nan)
+
     def is_known(self) -> np.ndarray:
-        """Boolean mask of known cells, map-index order."""
-        return np.isfinite(self.layer("elevation"))
+        """Boolean mask of known cells, map-index order: a height, and at least
+        ``fusion_params.min_points`` points fused into it."""
+        return self.geometry.unwrap(self._known_buffer())
+
+    def _known_buffer(self) -> np.ndarray:
+        """:meth:`is_known` in buffer order."""
+        return np.isfinite(self.data[0]) & (self.data[POINTS] >= self.fusion_params.min_points)
 
     @staticmethod
     def _layer_index(name: str) -> int:
@@ -242,7 +251,7 @@ class ElevationMap:
 
     def known_fraction(self) -> float:
         """Fraction of known cells."""
-        return float(np.isfinite(self.data[0]).mean())
+        return float(self._known_buffer().mean())
 
     # -- prediction and fused map (elevmap.prediction) -------------------------------------------
     def predict(self, relative_pose_cov=None, T_map_base=None, dt=None, time_variance_rate: float = 0.0, *,

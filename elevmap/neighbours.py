@@ -26,8 +26,10 @@ the mean height of the map's known cells, so that the sums stay well conditioned
 lies. Cells with a non-finite or non-positive P contribute nothing. Only the window of cells touched
 by a frame (plus ``radius``) is recomputed: the others' neighbourhoods did not change.
 
-Measured (``elevmap compare``, 60 frames, seed 0, paper mapper; the README's calibration table):
-see ``FusionParams.neighbour_radius``.
+Measured (``elevmap compare``, 60 frames, seed 0; the README's calibration table): see
+``FusionParams.neighbour_radius``. What it cannot see: a band of cells that agree with each other and
+are all wrong (a sliver of a step's top binned into the floor cell beside it, with nothing of the floor
+seen around it).
 """
 
 from __future__ import annotations

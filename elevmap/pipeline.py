@@ -103,7 +103,7 @@ def map_error(emap: ElevationMap, truth_height) -> dict:
         edge_rmse_m, edge_cells (the edge band).
     """
     h, v = emap.layer("elevation"), emap.layer("variance")
-    known = np.isfinite(h)
+    known = emap.is_known()
     keys = ("rmse_m", "median_abs_m", "p95_abs_m", "mean_error_m", "coverage_1sigma", "coverage_2sigma", "nll",
             "flat_rmse_m", "flat_coverage_2sigma", "edge_rmse_m")
     if not known.any():
@@ -297,8 +297,8 @@ class _Logger:
     def _meshes(self, emap):
         viz = self.viz
         xs, ys = emap.cell_centres()
-        h = emap.layer("elevation")
-        sigma = np.sqrt(emap.layer("variance"))
+        h = emap.known_layer("elevation")
+        sigma = np.sqrt(emap.known_layer("variance"))
         viz.log_height_mesh(self.rec, "world/map/elevation", xs, ys, h, viz.colormap(h, *viz.robust_range(h)))
         viz.log_height_mesh(self.rec, "world/map/sigma", xs, ys, h, viz.colormap(sigma, 0.001, 0.1, log=True))
 

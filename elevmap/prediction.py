@@ -426,8 +426,11 @@ def _fuse_map_kernel(E, V, HX, HY, HXY, res, min_h, out):
 
 
 def _map_layers(emap):
+    """Elevation (NaN where the cell is not known, see ``ElevationMap.is_known``), variance and the
+    horizontal variances, map-index order."""
     g = emap.geometry
     d = g.unwrap(emap.data[[ELEVATION, VARIANCE, HVAR_X, HVAR_Y, HVAR_XY]])
+    d[0] = np.where(emap.is_known(), d[0], np.nan)
     return [np.ascontiguousarray(a) for a in d]
 
 

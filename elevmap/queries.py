@@ -49,7 +49,7 @@ from .elevation_map import ElevationMap
 from .fileio import atomic_output
 from .fusion import FusionParams
 from .grid import GridGeometry
-from .layers import ELEVATION, LAYERS, LAYERS_V1, LAYERS_V2, UNKNOWN_VALUES, VARIANCE
+from .layers import ELEVATION, LAYERS, LAYERS_V1, LAYERS_V2, POINTS, UNKNOWN_VALUES, VARIANCE
 
 __all__ = [
     "height_at",
@@ -80,10 +80,11 @@ FORMAT_TAG = "elevmap-map/1"
 # height at points
 # ---------------------------------------------------------------------------------------------
 @njit(**_JIT)
-def _height_at_kernel(data, gx0, gy0, res, x, y, out_h, out_v):
+def _height_at_kernel(data, gx0, gy0, res, x, y, out_h, out_v, min_points):
     """Renormalised bilinear interpolation of elevation and variance (see the module docstring).
 
     ``data`` (len(LAYERS), n, n) in buffer order; x, y (M,) map frame [m]; writes out_h, out_v (M,).
+    Cells with fewer than ``min_points`` points fused count as unknown.
     Non-finite x or y give NaN. Index arithmetic stays in floats until a cell is known to be inside,
     so huge coordinates cannot overflow an integer.
     """
@@ -134,7 +135,7 @@ def _height_at_kernel(data, gx0, gy0, res, x, y, out_h, out_v):
                 if bj >= n:
                     bj -= n
                 h = data[ELEVATION, bi, bj]
-                if not np.isfinite(h):
+                if not (np.isfinite(h) and data[POINTS, bi, bj] >= min_points):
                     continue
                 sw += w
                 swh += w * h
@@ -144,17 +145,17 @@ def _height_at_kernel(data, gx0, gy0, res, x, y, out_h, out_v):
             out_v[k] = swv / sw
 
 
-def _height_at_numba(data, geometry: GridGeometry, x, y):
+def _height_at_numba(data, geometry: GridGeometry, x, y, min_points: int = 1):
     """Kernel entry on unvalidated (M,) coordinate arrays: returns (height, variance), each (M,)."""
     x = np.ascontiguousarray(x, dtype=np.float64)
     y = np.ascontiguousarray(y, dtype=np.float64)
     h = np.empty(x.shape[0])
     v = np.empty(x.shape[0])
-    _height_at_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, x, y, h, v)
+    _height_at_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, x, y, h, v, float(min_points))
     return h, v
 
 
-def _height_at_numpy(data, geometry: GridGeometry, x, y):
+def _height_at_numpy(data, geometry: GridGeometry, x, y, min_points: int = 1):
     """NumPy reference of :func:`_height_at_kernel`, term for term in the same order."""
     g = geometry
     n, res = g.n, g.resolution_m
@@ -182,9 +183,11 @@ def _height_at_numpy(data, geometry: GridGeometry, x, y):
             bj = (j[ok].astype(np.int64) + g.gy0) % n
             h = np.zeros(M)
             var = np.zeros(M)
+            pts = np.zeros(M)
             h[ok] = data[ELEVATION, bi, bj]
             var[ok] = data[VARIANCE, bi, bj]
-            use = ok & np.isfinite(h)
+            pts[ok] = data[POINTS, bi, bj]
+            use = ok & np.isfinite(h) & (pts >= min_points)
             sw = np.where(use, sw + w, sw)
             swh = np.where(use, swh + w * h, swh)
             swv = np.where(use, swv + w * var, swv)
@@ -251,14 +254,14 @@ def height_at(emap: ElevationMap, xy):
     """
     emap = _check_map(emap)
     x, y, single = _check_xy(xy)
-    return _result(*_height_at_numba(emap.data, emap.geometry, x, y), single)
+    return _result(*_height_at_numba(emap.data, emap.geometry, x, y, emap.fusion_params.min_points), single)
 
 
 def height_at_reference(emap: ElevationMap, xy):
     """NumPy reference of :func:`height_at` (same inputs, outputs and errors)."""
     emap = _check_map(emap)
     x, y, single = _check_xy(xy)
-    return _result(*_height_at_numpy(emap.data, emap.geometry, x, y), single)
+    return _result(*_height_at_numpy(emap.data, emap.geometry, x, y, emap.fusion_params.min_points), single)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -394,7 +397,7 @@ def height_scan(emap: ElevationMap, T_map_base, pattern="legged_gym", feet_base=
             offsets = _offsets(pattern, "pattern")
         points = offsets @ R_yaw.T + base_xy
     points = np.ascontiguousarray(points)
-    h, v = _height_at_numba(emap.data, emap.geometry, points[:, 0], points[:, 1])
+    h, v = _height_at_numba(emap.data, emap.geometry, points[:, 0], points[:, 1], emap.fusion_params.min_points)
     known = np.isfinite(h)
     h[~known] = fill
     return ScanResult(points, h, v, known)
@@ -457,8 +460,11 @@ def to_grid_map(emap: ElevationMap, layers=None, *, frame_id: str = "map") -> di
     n, res = g.n, g.resolution_m
     rows = cols = n
     data = {}
+    pending = ~emap.is_known() & np.isfinite(g.unwrap(emap.data[LAYERS.index("elevation")]))
     for name in names:
         m = g.unwrap(emap.data[LAYERS.index(name)])      # map-index order, [i, j]
+        if name in ("elevation", "variance"):            # cells below min_points read as unknown
+            m = np.where(pending, np.nan, m)
         gm = m[::-1, ::-1]                               # grid_map order, [r, c]
         data[name] = np.ascontiguousarray(gm.T, dtype=np.float32).ravel()   # column-major
     centre = g.centre_xy

@@ -38,7 +38,7 @@ def main() -> None:
         summary = run_mapping(src, MappingConfig(length_m=6.0, resolution_m=0.04, follow=False),
                               rrd_path=args.out, show_progress=True)
     m = summary["map"]
-    h = m.layer("elevation")
+    h = m.known_layer("elevation")
     print(f"{summary['frames']} frames, {summary['ms_per_frame_median']:.1f} ms per frame, "
           f"{m.is_known().sum()} cells known, heights {h[m.is_known()].min():.3f}..{h[m.is_known()].max():.3f} m")
     if args.out:

@@ -23,7 +23,7 @@ def small_map(**kw) -> ElevationMap:
 def set_cell(m, i, j, h, var, hx=0.3, hy=0.3, hxy=0.0):
     bi, bj = m.geometry.buffer_index([i, j])
     m.data[:, bi, bj] = np.nan
-    m.data[[ELEVATION, VARIANCE, HVAR_X, HVAR_Y, HVAR_XY, POINTS, TIME], bi, bj] = (h, var, hx, hy, hxy, 1.0, 0.0)
+    m.data[[ELEVATION, VARIANCE, HVAR_X, HVAR_Y, HVAR_XY, POINTS, TIME], bi, bj] = (h, var, hx, hy, hxy, 10.0, 0.0)
 
 
 def layer(m, name):
@@ -121,7 +121,7 @@ def test_roll_and_pitch_add_height_variance_at_their_lever_arm(impl):
 
 
 def test_time_based_growth():
-    m = small_map()
+    m = ElevationMap(length_m=3.0, resolution_m=1.0, fusion_params=FusionParams(min_points=1))
     m.update(np.array([[0.5, 0.5, 0.2], [1.5, -0.5, 0.1]]), np.array([1e-3, 2e-3]), stamp=0.0)
     v0 = m.layer("variance")
     m.predict(dt=2.0, time_variance_rate=1e-3)
@@ -301,7 +301,7 @@ def test_fused_equals_raw_with_minimal_horizontal_variance(impl, rng):
     pts = np.column_stack([rng.uniform(-0.75, 0.75, (400, 2)), rng.normal(0.0, 0.2, 400)])
     m.update(pts, np.full(400, 1e-4))
     f = m.fused_map(impl=impl)
-    h, v = m.layer("elevation"), m.layer("variance")
+    h, v = m.known_layer("elevation"), m.known_layer("variance")     # cells below min_points: unknown
     np.testing.assert_array_equal(f["elevation"], h)            # the ellipse holds the cell only
     np.testing.assert_allclose(f["lower_bound"], h - 2 * np.sqrt(v), equal_nan=True, rtol=1e-15)
     np.testing.assert_allclose(f["upper_bound"], h + 2 * np.sqrt(v), equal_nan=True, rtol=1e-15)

@@ -11,7 +11,7 @@ import pytest
 
 from elevmap import ElevationMap, FusionParams
 from elevmap import queries as q
-from elevmap.layers import ELEVATION, LAYERS, VARIANCE
+from elevmap.layers import ELEVATION, LAYERS, POINTS, VARIANCE
 
 
 def small_map() -> ElevationMap:
@@ -19,11 +19,12 @@ def small_map() -> ElevationMap:
     return ElevationMap(length_m=3.0, resolution_m=1.0)
 
 
-def set_cell(m: ElevationMap, i: int, j: int, h: float, var: float = 0.01) -> None:
-    """Write cell (i, j) (map index) through the buffer index."""
+def set_cell(m: ElevationMap, i: int, j: int, h: float, var: float = 0.01, points: float = 10.0) -> None:
+    """Write cell (i, j) (map index) through the buffer index, with enough points to be known."""
     bi, bj = m.geometry.buffer_index([i, j])
     m.data[ELEVATION, bi, bj] = h
     m.data[VARIANCE, bi, bj] = var
+    m.data[POINTS, bi, bj] = points
 
 
 def filled_small_map() -> tuple[ElevationMap, np.ndarray, np.ndarray]:
@@ -129,16 +130,23 @@ def test_height_at_after_a_move_with_wrap_around():
 
 
 def test_height_at_after_a_real_update():
-    m = ElevationMap(length_m=3.0, resolution_m=1.0, fusion_params=FusionParams(neighbour_radius=0))
+    one = FusionParams(neighbour_radius=0, min_points=1)           # one point per cell counts
+    m = ElevationMap(length_m=3.0, resolution_m=1.0, fusion_params=one)
     m.update(np.array([[0.5, 0.5, 1.0], [-0.5, 0.5, 3.0]]), np.array([1e-4, 1e-4]))
     h, v = m.height_at([0.0, 0.5])
     assert h == pytest.approx(2.0) and v == pytest.approx(1e-4)
     # with the neighbourhood spread, two neighbours 2 m apart with variances 1e-4 are not both right:
     # each gets tau^2 = (Q - 1) / (S1 - S2 / S1) = (2e4 - 1) / 1e4: Q = 1e4 (1^2 + 1^2), S1 = 2e4, S2 = 2e8
-    m = small_map()
+    m = ElevationMap(length_m=3.0, resolution_m=1.0, fusion_params=FusionParams(min_points=1))
     m.update(np.array([[0.5, 0.5, 1.0], [-0.5, 0.5, 3.0]]), np.array([1e-4, 1e-4]))
     h, v = m.height_at([0.0, 0.5])
     assert h == pytest.approx(2.0) and v == pytest.approx(1e-4 + (2e4 - 1) / 1e4)
+    # with the default min_points (3) one point does not make a cell known
+    m = small_map()
+    m.update(np.array([[0.5, 0.5, 1.0], [-0.5, 0.5, 3.0]]), np.array([1e-4, 1e-4]))
+    assert np.isnan(m.height_at([0.0, 0.5])[0]) and not m.is_known().any()
+    m.update(np.array([[0.5, 0.5, 1.0]] * 2 + [[-0.5, 0.5, 3.0]] * 2), np.full(4, 1e-4))
+    assert m.is_known().sum() == 2 and m.height_at([0.0, 0.5])[0] == pytest.approx(2.0)
 
 
 def random_map(rng, n_cells=12, res=0.25, move=(0.9, -1.3)) -> ElevationMap:
@@ -146,6 +154,7 @@ def random_map(rng, n_cells=12, res=0.25, move=(0.9, -1.3)) -> ElevationMap:
     m.move_to(move)
     shape = m.data.shape[1:]
     m.data[ELEVATION] = rng.normal(0, 1, shape)
+    m.data[POINTS] = rng.choice([1.0, 2.0, 5.0, 10.0], shape, p=[0.1, 0.1, 0.4, 0.4])   # < 3: unknown
     m.data[VARIANCE] = rng.uniform(1e-4, 1e-2, shape)
     pick = rng.uniform(size=shape)
     m.data[ELEVATION][pick < 0.25] = np.nan
@@ -223,6 +232,7 @@ def plane_map(centre=(0.0, 0.0)) -> ElevationMap:
     xs, ys = m.cell_centres()
     a, b, c = PLANE
     m.data[ELEVATION] = m.geometry.wrap(a * xs[:, None] + b * ys[None, :] + c)
+    m.data[POINTS] = 10.0
     m.data[VARIANCE] = 1e-4
     return m
 
@@ -399,6 +409,7 @@ def test_grid_map_export_after_moves_with_wrap_around():
     np.testing.assert_allclose(msg["position"], m.centre_xy)
     big = ElevationMap(2.0, 0.1)
     big.data[ELEVATION] = np.random.default_rng(5).normal(size=(20, 20))
+    big.data[POINTS] = 10.0
     big.data[VARIANCE] = 1e-3
     big.move_to((0.73, -0.46))
     check_export(big)
@@ -467,7 +478,7 @@ def test_maps_saved_before_the_spread_layers_still_load(tmp_path, version):
     r = ElevationMap.load(old)
     assert r.data.shape[0] == len(LAYERS)
     np.testing.assert_array_equal(r.data[: len(old_layers)], m.data[: len(old_layers)])
-    known = r.is_known()
+    known = np.isfinite(r.layer("elevation"))
     new = ["neighbour_spread"] + (["spread"] if version == "v1" else [])
     for name in new:
         assert (r.layer(name)[known] == 0).all() and np.isnan(r.layer(name)[~known]).all()

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from elevmap import FusionParams
 from elevmap.elevation_map import ElevationMap
 from elevmap.grid import GridGeometry
 from elevmap.layers import ELEVATION, LAYERS, POINTS, TIME, UNKNOWN_VALUES, UPPER_BOUND, VARIANCE, ZERO_WHEN_UNKNOWN
@@ -488,7 +489,7 @@ def test_a_point_measured_too_low_does_not_clear_the_floor_it_was_measured_on(im
     origin = np.array([-2.5, 0.5, 1.0])
     point = np.array([[3.5, 0.5, -1.5]])        # 1.5 m too low: its ray passes at -0.46 m over x in [1, 2)
     for var, cleared in ((None, 1), (np.array([0.6 ** 2]), 0)):   # with 3 sigma = 1.8 m the ray ends at +0.3
-        m = ElevationMap(7.0, 1.0)
+        m = ElevationMap(7.0, 1.0, fusion_params=FusionParams(min_points=1))
         m.update(np.array([[1.5, 0.5, 0.0]]), np.array([1e-6]), stamp=0.0)
         assert fn(m.data, m.geometry, origin, point, 1.0, height_var=var) == cleared
         assert m.is_known()[4, 3] == (cleared == 0)
