@@ -85,14 +85,14 @@ MAPPERS = ("paper", "constant", "quadratic", "anybotics_d435", "paper_capped")
 #: Scenes of a comparison (those of :class:`elevmap.sources.simulated.SimulatedWalk`).
 SCENES = ("stairs", "boxes", "slope", "rough", "demo")
 #: The per-frame information cap of ``paper_capped``: a frame adds to a cell at most the information of
-#: n_eff = 1 average point. Why 1: (a) measured (stairs and boxes, 60 frames, seeds 0 and 1, with and
-#: without correlated noise; caps 1, 2, 4, 8, 16): 2-sigma coverage and NLL improve monotonically as the
-#: cap goes down to 1 while the RMSE stays within 1.5 % of the uncapped map's; (b) physics: with the
-#: D435's error correlation of ~3 px at 848 x 480 a 4 cm cell at 1 m holds about one independent sample
-#: per frame (shared/notes/depth-effects.md, E9); (c) precedent: elevation_mapping_cupy averages a
-#: frame's points per cell, so that N points reduce the variance as much as one. The price: with truly
-#: independent pixels (the reference simulation) a frame's information is under-counted (the mean sigma
-#: grows from ~16 to ~20 mm on the stairs).
+#: n_eff = 1 average point. Why 1: (a) measured (stairs and boxes, 60 frames, seed 0, with and without
+#: correlated noise; caps 1, 2, 4, 8): 2-sigma coverage rises as the cap goes down to 1 (by +0.003 to
+#: +0.018 at 1) while the RMSE stays within +3 % of the uncapped map's; (b) physics: with the D435's
+#: error correlation of ~3 px at 848 x 480 a 4 cm cell at 1 m holds about one independent sample per
+#: frame (shared/notes/depth-effects.md, E9); (c) precedent: elevation_mapping_cupy averages a frame's
+#: points per cell, so that N points reduce the variance as much as one. The map's own default is no
+#: cap (``FusionParams.max_points_per_frame = None``): its spreads measure the excess scatter the cap
+#: only guesses, and the cap pushes 1-sigma coverage out of its band (README, "Calibration").
 DEFAULT_CAP = 1.0
 #: The keys every mapper's entry of the report has (the issue's schema).
 REPORT_KEYS = ("rmse_m", "p95_abs_m", "nll", "coverage_1sigma", "coverage_2sigma", "mean_sigma_m", "edge_rmse_m",
