@@ -64,6 +64,16 @@ def fused_variance(data) -> np.ndarray:
     return data[VARIANCE] - np.maximum(s, nb)
 
 
+@njit(**_JIT)
+def _cell(data, bi, bj):
+    """(height, fused variance P, spread) of buffer cell (bi, bj); NaN spreads count as 0."""
+    s = data[SPREAD, bi, bj]
+    s = s if s > 0.0 else 0.0
+    nb = data[NEIGHBOUR_SPREAD, bi, bj]
+    nb = nb if nb > 0.0 else 0.0
+    return data[ELEVATION, bi, bj], data[VARIANCE, bi, bj] - max(s, nb), s
+
+
 @njit(parallel=True, **_JIT)
 def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref):
     """Map rows i0..i1, columns j0..j1 (inclusive, map index); buffer start (sx, sy); heights taken
@@ -91,12 +101,7 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref):
             bj = j + sy
             if bj >= n:
                 bj -= n
-            h = data[ELEVATION, bi, bj]
-            s = data[SPREAD, bi, bj]
-            s = s if s > 0.0 else 0.0
-            nb = data[NEIGHBOUR_SPREAD, bi, bj]
-            nb = nb if nb > 0.0 else 0.0
-            p = data[VARIANCE, bi, bj] - max(s, nb)
+            h, p, _ = _cell(data, bi, bj)
             if np.isnan(h) or not (p > 0.0 and p < np.inf):
                 continue
             w = 1.0 / p
@@ -123,12 +128,7 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref):
             bj = j0 + c + sy
             if bj >= n:
                 bj -= n
-            h0 = data[ELEVATION, bi, bj]
-            s = data[SPREAD, bi, bj]
-            s = s if s > 0.0 else 0.0
-            nb = data[NEIGHBOUR_SPREAD, bi, bj]
-            nb = nb if nb > 0.0 else 0.0
-            p0 = data[VARIANCE, bi, bj] - max(s, nb)
+            h0, p0, s = _cell(data, bi, bj)
             if np.isnan(h0) or not (p0 > 0.0 and p0 < np.inf):
                 continue
             s1 = B[0, c]

@@ -204,19 +204,23 @@ def incidence_angle_stats(points_cam, block_px: int | None = None, min_points: i
     return out[0], out[1]
 
 
+def _centred_moments(S, n):
+    """(mu, mv, mw, cuu, cuv, cvv, cuw, cvw, cww): means and (co)variances of u', v', w from the summed
+    moments S = (n, su, sv, sw, suu, suv, svv, suw, svw, sww) along S's first axis, divided by n (a
+    number or an array of S's other shape). Plain arithmetic: the numba kernels compile this same
+    function (``noise_model.kernels``)."""
+    mu, mv, mw = S[1] / n, S[2] / n, S[3] / n
+    return (mu, mv, mw, S[4] / n - mu * mu, S[5] / n - mu * mv, S[6] / n - mv * mv, S[7] / n - mu * mw,
+            S[8] / n - mv * mw, S[9] / n - mw * mw)
+
+
 def _theta_std_from_moments_numpy(S, alpha, beta, gamma, ok):
     """Standard deviation [rad] of theta = atan2(|(alpha, beta)|, |gamma|) of the plane fit of the summed
     moments S (..., 10) = (n, su, sv, sw, suu, suv, svv, suw, svw, sww); 0 where not ok or n <= 3."""
     n = S[..., 0]
     ok = ok & (n > 3)
     nn = np.where(ok, n, 4.0)
-    mu, mv, mw = S[..., 1] / nn, S[..., 2] / nn, S[..., 3] / nn
-    cuu = S[..., 4] / nn - mu * mu
-    cuv = S[..., 5] / nn - mu * mv
-    cvv = S[..., 6] / nn - mv * mv
-    cuw = S[..., 7] / nn - mu * mw
-    cvw = S[..., 8] / nn - mv * mw
-    cww = S[..., 9] / nn - mw * mw
+    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, cww = _centred_moments(np.moveaxis(S, -1, 0), nn)
     det = np.where(ok, cuu * cvv - cuv * cuv, 1.0)
     rss = cww - alpha * cuw - beta * cvw                           # RSS / n
     rss = np.where(rss > RSS_FLOOR_REL * mw * mw, rss, 0.0)        # below the moments' rounding: 0
@@ -272,12 +276,7 @@ def _planes_from_inverse_depth_moments(S, min_points):
     n = S[..., 0]
     ok = n >= max(min_points, 3)
     nn = np.where(ok, n, 1.0)
-    mu, mv, mw = S[..., 1] / nn, S[..., 2] / nn, S[..., 3] / nn
-    cuu = S[..., 4] / nn - mu * mu
-    cuv = S[..., 5] / nn - mu * mv
-    cvv = S[..., 6] / nn - mv * mv
-    cuw = S[..., 7] / nn - mu * mw
-    cvw = S[..., 8] / nn - mv * mw
+    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, _ = _centred_moments(np.moveaxis(S, -1, 0), nn)
     det = cuu * cvv - cuv * cuv
     ok &= det > _DEGENERATE_REL * (cuu + cvv) ** 2
     det = np.where(ok, det, 1.0)

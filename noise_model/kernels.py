@@ -30,6 +30,7 @@ from .geometry import (
     NORMAL_MIN_POINTS,
     WINDOW_RADIUS_BLOCKS,
     _DEGENERATE_REL,
+    _centred_moments,
     default_block_px,
     deproject,
     depth_edges,
@@ -121,6 +122,10 @@ def resolve_threads(nthreads) -> int:
 # ---------------------------------------------------------------------------------------------
 # numba kernels
 # ---------------------------------------------------------------------------------------------
+#: noise_model.geometry._centred_moments, compiled (S a (10,) or longer moment vector, n a number)
+_centred = njit(**_JIT)(_centred_moments)
+
+
 @njit(**_JIT)
 def _plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
     """(theta [rad], alpha, beta, gamma, ok) of the inverse-depth plane fit w = alpha u' + beta v' + gamma
@@ -128,12 +133,7 @@ def _plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
     n = S[0]
     if n < max(min_points, 3):
         return 0.0, 0.0, 0.0, 0.0, False
-    mu, mv, mw = S[1] / n, S[2] / n, S[3] / n
-    cuu = S[4] / n - mu * mu
-    cuv = S[5] / n - mu * mv
-    cvv = S[6] / n - mv * mv
-    cuw = S[7] / n - mu * mw
-    cvw = S[8] / n - mv * mw
+    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, _ = _centred(S, n)
     det = cuu * cvv - cuv * cuv
     if not det > degenerate_rel * (cuu + cvv) * (cuu + cvv):    # pixels on one image line
         return 0.0, 0.0, 0.0, 0.0, False
@@ -150,13 +150,7 @@ def _theta_std_from_moments(S, alpha, beta, gamma):
     n = S[0]
     if not n > 3.0:
         return 0.0
-    mu, mv, mw = S[1] / n, S[2] / n, S[3] / n
-    cuu = S[4] / n - mu * mu
-    cuv = S[5] / n - mu * mv
-    cvv = S[6] / n - mv * mv
-    cuw = S[7] / n - mu * mw
-    cvw = S[8] / n - mv * mw
-    cww = S[9] / n - mw * mw
+    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, cww = _centred(S, n)
     det = cuu * cvv - cuv * cuv
     rss = cww - alpha * cuw - beta * cvw
     rss = rss if rss > RSS_FLOOR_REL * mw * mw else 0.0      # below the rounding of the raw moments: 0
