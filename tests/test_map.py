@@ -318,3 +318,23 @@ def test_points_that_scatter_beyond_their_noise_do_not_make_a_cell_confident(rng
     ok = small_map(fusion_params=FusionParams(min_variance=1e-12))
     ok.update(np.column_stack([np.full(100, 0.5), np.full(100, 0.5), rng.normal(0, 0.005, 100)]), var)
     assert ok.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)
+
+
+def test_spread_counts_only_beyond_the_spread_ratio(rng):
+    """Points that scatter 2x their stated sigma (a misjudged noise model) add no spread with the default
+    ratio 9; points 4x beyond it (a second surface) do; ratio 1 counts any significant excess."""
+    var = np.full(400, 0.005 ** 2)
+    xy = np.full((400, 2), 0.5)
+    fine = dict(min_variance=1e-12)
+    for scale, ratio, expect in ((2.0, 9.0, False), (4.0, 9.0, True), (2.0, 1.0, True)):
+        m = small_map(fusion_params=FusionParams(spread_ratio=ratio, scatter_inflation=False, **fine))
+        m.update(np.column_stack([xy, rng.normal(0.0, scale * 0.005, 400)]), var)
+        assert (m.layer("spread")[1, 1] > 0) == expect, (scale, ratio)
+
+
+def test_fusion_params_reject_bad_calibration_settings():
+    for kw, name in (({"spread_ratio": 0.5}, "spread_ratio"), ({"spread_ratio": float("nan")}, "spread_ratio"),
+                     ({"min_points": 0}, "min_points"), ({"min_points": 2.5}, "min_points"),
+                     ({"neighbour_radius": 11}, "neighbour_radius")):
+        with pytest.raises(ValueError, match=name):
+            FusionParams(**kw)
