@@ -1,6 +1,6 @@
 """Neighbourhood spread: the disagreement of a cell's neighbours, added to its variance.
 
-A cell's fused variance P (``variance`` minus its spread) says how well its points pin down their mean
+A cell's fused variance P (``variance`` minus the larger of its two spreads) says how well its points pin down their mean
 if they are independent, unbiased and land in the right cell. Near a step edge and in the far field of
 a D435 they often do not: the depth noise along a grazing ray is decimetres, so points of one level
 land in cells of the other (measured with ``elevmap compare``: cells within 0.4 m of an edge hold
@@ -18,11 +18,11 @@ c included) with weights w_j = 1 / P_j, the DerSimonian-Laird random-effects est
 the window's mean beyond the cells' own variances. It is stored as ``neighbour_spread`` and the cell's
 variance becomes P + max(spread, neighbour_spread): the height at the centre of a cell in a window
 whose cells disagree is uncertain by that disagreement. The fusion works on the variance without it
-(gate and prior, see :func:`elevmap.fusion._nbr_excess`), so the heights are the same with or without
-it; only the variances that consumers read change.
+(the gate and the prior, :func:`elevmap.fusion._nbr_excess`; the visibility clean-up too), so the
+heights are the same with or without it; only the variances that consumers read change.
 
 The window sums are separable (along the rows, then down the columns); heights enter them relative to
-the mean height of the map's known cells, so that the sums stay well conditioned however high the map
+the mean height of the map's known cells (sampled every 8th row and column), so that the sums stay well conditioned however high the map
 lies. Cells with a non-finite or non-positive P contribute nothing. Only the window of cells touched
 by a frame (plus ``radius``) is recomputed: the others' neighbourhoods did not change.
 
