@@ -186,7 +186,8 @@ def incidence_angle_stats(points_cam, block_px: int | None = None, min_points: i
     -------
     theta, theta_std : ndarray, shape (H, W), float64 [rad]
         NaN where the pixel is invalid; theta_std is 0 where theta falls back to 0 (too few points,
-        degenerate window) or the window holds no more than 3 points.
+        degenerate window) or the window holds no more than 3 points, and at most pi/2 (a window of
+        noise alone: the angle is unknown).
     """
     p, valid = _valid_points(points_cam)
     H, W = valid.shape
@@ -239,7 +240,7 @@ def _theta_std_from_moments_numpy(S, alpha, beta, gamma, ok):
     jg = -rho * np.sign(gamma) / qq
     var = (ja * ja * vaa + jb * jb * vbb + jg * jg * vgg + 2.0 * ja * jb * vab + 2.0 * ja * jg * vag
            + 2.0 * jb * jg * vbg)
-    return np.where(ok & (q > 0), np.sqrt(np.maximum(var, 0.0)), 0.0)
+    return np.where(ok & (q > 0), np.minimum(np.sqrt(np.maximum(var, 0.0)), 0.5 * np.pi), 0.0)   # <= 90 deg
 
 
 def _block_planes_numpy(p, valid, b, min_points):

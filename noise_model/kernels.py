@@ -172,7 +172,7 @@ def _theta_std_from_moments(S, alpha, beta, gamma):
     jg = -rho * sg / q
     var = (ja * ja * vaa + jb * jb * vbb + jg * jg * vgg + 2.0 * ja * jb * vab + 2.0 * ja * jg * vag
            + 2.0 * jb * jg * vbg)
-    return math.sqrt(max(var, 0.0))
+    return min(math.sqrt(max(var, 0.0)), 0.5 * math.pi)      # beyond 90 deg: the angle is simply unknown
 
 
 @njit(**_JIT)

@@ -172,3 +172,6 @@ def test_angle_standard_deviation_is_zero_on_an_exact_plane_and_grows_across_an_
     t, s = incidence_angle_stats(deproject(step, K))
     assert np.nanmax(s[:, 205:219]) > math.radians(5)           # windows across the step are unsure
     assert np.nanmax(s[:, :180]) < 1e-6
+    noise = np.random.default_rng(0).uniform(0.3, 9.0, z.shape)  # depth that is noise alone
+    t, s = incidence_angle_stats(deproject(noise, K))
+    assert np.nanmax(s) <= math.pi / 2 and np.nanmax(s) > math.radians(20)
