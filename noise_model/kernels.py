@@ -75,7 +75,13 @@ class MapPoints(NamedTuple):
         means and breaks their calibration. The plane's depth carries ~1/N of the pixel's own noise
         (N ~ 400 pixels in the window), so the cell is chosen (almost) independently of the height
         error. Measured on the simulated stairs and boxes walks (``elevmap compare``): 2-sigma
-        coverage 0.90 -> 0.92 and 0.76 -> 0.81.
+        coverage 0.90 -> 0.92 and 0.76 -> 0.81. Where the measured point is *nearer* than the plane,
+        it is binned at its own depth: a plane fitted across an edge lies beyond the near surface (a
+        box top seen at a grazing angle is a strip a few pixels tall, its window mostly the floor
+        behind it), and binning there carries the near surface's height into the cells behind the
+        edge, which its own occlusion leaves sparsely seen; points binned a little too near land
+        on cells the camera sees densely, where they are outvoted. Measured: RMSE 61.7 -> 37.3 mm
+        (stairs), 70.7 -> 59.7 mm (boxes).
     height_var : ndarray, shape (N,) [m^2]
         Variance of the map-frame z of each point (Sigma_map[2, 2]).
     horizontal_cov : ndarray, shape (N, 3) [m^2]
@@ -443,9 +449,9 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                             + q2 * (P14 - q2 * P34 + q0 * P45)
                             - q1 * (P15 - q2 * P35 + q0 * P55))
                 i = k0 + j
-                # x, y where the ray meets the local plane (the cell the pixel looks at), z from the
-                # measured depth (see MapPoints)
-                zb = zs if bin_at_plane else z
+                # x, y where the ray meets the local plane (the cell the pixel looks at), or at the
+                # measured depth where that is nearer; z from the measured depth (see MapPoints)
+                zb = min(zs, z) if bin_at_plane else z
                 pts[0, i] = zb * a0 + t0
                 pts[1, i] = zb * a1 + t1
                 pts[2, i] = q2 + t2
@@ -508,7 +514,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         Reused buffers of this image size; the result is then a view into it, valid until the
         workspace's next use. Without one, fresh arrays are returned.
     bin_at_plane : bool
-        Place each point's x, y where its ray meets the local plane (see :class:`MapPoints`); False:
+        Place each point's x, y where its ray meets the local plane, or at its measured depth where
+        that is nearer (see :class:`MapPoints`); False:
         at its measured depth.
 
     Returns
@@ -574,8 +581,8 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
                             fy=K[1, 1], model=model, z_noise=z_noise.ravel()[pix], theta_std=theta_std.ravel()[pix])
     cov_map = to_map_frame(cov, p, T, P)
     points_map = p @ T[:3, :3].T + T[:3, 3]
-    if bin_at_plane:          # x, y where the ray meets the local plane, z from the measured depth
-        pb = p * (z_noise.ravel()[pix] / p[:, 2])[:, None]
+    if bin_at_plane:          # x, y at the nearer of the local plane and the measured depth, z measured
+        pb = p * (np.minimum(z_noise.ravel()[pix], p[:, 2]) / p[:, 2])[:, None]
         points_map[:, :2] = (pb @ T[:3, :3].T + T[:3, 3])[:, :2]
     hcov = np.stack([cov_map[:, 0, 0], cov_map[:, 0, 1], cov_map[:, 1, 1]], axis=1)
     return MapPoints(points_map, cov_map[:, 2, 2].copy(), hcov, pix.astype(np.int64))
