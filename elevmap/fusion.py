@@ -130,7 +130,8 @@ class FusionParams:
         walks (``elevmap compare``, 60 frames, seed 0, paper mapper; stairs / boxes / slope / rough):
         mean NLL 68.8 / 3.6 / 128 / -2.7 with 0, 32.6 / 0.0 / - / - with 2, 16.5 / -1.0 / 6.4 / -2.7 with
         4; 2-sigma coverage 0.907 / 0.857 / 0.854 / 0.970 with 0 -> 0.950 / 0.914 / 0.913 / 0.980 with 4
-        (1-sigma 0.77 / 0.72 / 0.73 / 0.81 -> 0.81 / 0.78 / 0.79 / 0.84).
+        (1-sigma 0.77 / 0.72 / 0.73 / 0.81 -> 0.81 / 0.78 / 0.79 / 0.84); measured when it was added,
+        before ``min_points``, ``spread_ratio`` and nearer binning (README: the current figures).
     min_points : int
         Points a cell must have fused (``points`` layer) before it is reported: below, the map keeps and
         fuses it but :meth:`ElevationMap.is_known`, the queries, the exports, the fused map and the scores
@@ -138,7 +139,8 @@ class FusionParams:
         neighbouring level as often as not. 3 by default; 1 reports every fused cell. Measured on the
         simulated walks (``elevmap compare``, 60 frames, seed 0, paper mapper, stairs / boxes; 1 -> 3):
         RMSE 68.6 -> 58.8 / 85.1 -> 70.4 mm, mean NLL 16.5 -> -2.3 / -1.02 -> -1.15, 2-sigma coverage
-        0.950 -> 0.959 / 0.914 -> 0.929, known cells 31.0 -> 28.4 % / 51.9 -> 46.8 %.
+        0.950 -> 0.959 / 0.914 -> 0.929, known cells 31.0 -> 28.4 % / 51.9 -> 46.8 %; measured when it
+        was added, before ``spread_ratio`` and nearer binning (README: the current figures).
     """
 
     mahalanobis_threshold: float = 2.5

@@ -9,7 +9,6 @@ is scored against it; with a recording path every frame goes to rerun through :m
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np

@@ -440,7 +440,9 @@ def to_grid_map(emap: ElevationMap, layers=None, *, frame_id: str = "map") -> di
         ``data`` {name: float32 array (rows * cols,), the matrix in column-major order, i.e.
         ``data[k] = M[k % rows, k // rows]``}; ``layout``, the Float32MultiArray dimensions
         (``column_index`` then ``row_index``); ``outer_start_index``, ``inner_start_index`` (0, 0);
-        ``size`` (rows, cols).
+        ``size`` (rows, cols). ``elevation`` and ``variance`` are NaN in cells that are not known
+        (fewer than ``FusionParams.min_points`` points, see ``ElevationMap.is_known``): grid_map's
+        basic layers mark validity; the other layers are exported as stored.
 
     Raises
     ------
