@@ -10,6 +10,14 @@ once with the prior:
 which is the sequential Kalman update without its order dependence. An unknown cell takes the
 frame's weighted mean and 1/W.
 
+Random-effects prior: where the cell's points scatter about its height more than their variances
+allow (its spread tau^2 > 0, see ``spread_alpha``), each new point is weighted 1/(sigma^2 + tau^2) and
+the prior, the mean of the n points fused so far, has variance at least tau^2 / n (what a mean of n
+points that scatter by tau^2 can know). Without that floor a cell initialised by one wrong point
+(a far depth outlier with a small stated sigma) kept its fixed-effect variance against the
+random-effects weights of every later point: measured on the simulated boxes walk, a box top stayed
+at -0.33 m through 50 points at its true 0.25 m.
+
 Change: a single outlier (or a few) is ignored. When a cell's rejected points are at least
 ``change_min_points`` and outnumber its accepted ones, the terrain has changed (a box put down, a
 step): the prior's variance is inflated by the squared distance to the rejected points' mean, so that
@@ -279,6 +287,8 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
         tau2 = 0.0
     h_prior = h
     v = data[VARIANCE, bi, bj] - tau2 - _nbr_excess(data, bi, bj)  # variance of the fused mean
+    if known and tau2 > 0.0 and data[POINTS, bi, bj] > 0.0:   # a mean of n points that scatter by tau^2
+        v = max(v, tau2 / data[POINTS, bi, bj])                   # is known to no better than tau^2 / n
     if inflate > 0.0 and N >= 2.0:
         chi2 = (WZZ - WZ * WZ / W) / (N - 1.0)
         k = N - 1.0           # chi2 > its 1 - 1e-4 quantile (Wilson-Hilferty), per degree of freedom
@@ -553,6 +563,8 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
             Wr, WZr = Wr * sr, WZr * sr
         h, v = flat[ELEVATION].copy(), flat[VARIANCE] - tau2_old - excess
         known = ~np.isnan(h)
+        npo = flat[POINTS]
+        v = np.where(known & (tau2_old > 0) & (npo > 0), np.maximum(v, tau2_old / np.where(npo > 0, npo, 1.0)), v)
         change = seen & known & (Nr >= change_min) & (Nr > N)
         mr = WZr / Wr
         v = np.where(change, v + (mr - h) ** 2, v)
