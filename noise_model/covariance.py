@@ -71,7 +71,7 @@ def pose_jacobian(points_cam, T_map_cam) -> np.ndarray:
 
 def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx: float | None = None,
                       fy: float | None = None, model: SensorModel = D435, z_noise=None,
-                      theta_std=None) -> np.ndarray:
+                      theta_std=None, min_axial_var=None) -> np.ndarray:
     """Camera-frame covariance of each point under the D435 noise model.
 
     Parameters
@@ -94,6 +94,9 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
         Standard deviation of the estimated theta [rad] (:func:`noise_model.incidence_angle_stats`); the
         axial variance is then E[sigma_z^2] over the angle's uncertainty
         (:func:`noise_model.axial_variance`) instead of sigma_z(theta)^2.
+    min_axial_var : array_like, shape (N,), optional
+        A floor [m^2] under the axial variance: a speckle's squared deviation from its neighbours
+        (:func:`noise_model.speckle_deviations`).
 
     Returns
     -------
@@ -125,6 +128,11 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
         if ts.shape != (n,) or not np.all(np.isfinite(ts)) or (n and float(ts.min()) < 0):
             raise ValueError(f"theta_std must be ({n},) finite standard deviations >= 0 [rad]")
         s2 = _axial_variance_unchecked(zs, th, ts, model)
+    if min_axial_var is not None:
+        floor = np.asarray(min_axial_var, dtype=np.float64)
+        if floor.shape != (n,) or not np.all(np.isfinite(floor)) or (n and float(floor.min()) < 0):
+            raise ValueError(f"min_axial_var must be ({n},) finite variances >= 0 [m^2]")
+        s2 = np.maximum(s2, floor)
     cov = s2[:, None, None] * (r[:, :, None] * r[:, None, :])
     var_x = z * z * (PIXEL_VARIANCE_PX2 / (fx * fx))
     var_y = z * z * (PIXEL_VARIANCE_PX2 / (fy * fy))

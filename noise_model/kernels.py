@@ -37,6 +37,7 @@ from .geometry import (
     depth_to_metres,
     incidence_angle_stats,
     plane_depths,
+    speckle_deviations,
 )
 from .d435 import THETA_GRID, THETA_QUADRATURE, _axial_sigma_unchecked
 
@@ -196,6 +197,50 @@ def _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw):
         eg = eg + hw[k] * g
         eg2 = eg2 + hw[k] * (g * g)
     return eg, eg2
+
+
+@njit(**_JIT)
+def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+    """Whether neighbour depth zn (NaN / -inf: none) agrees with z: |zn - z| within the depth-edge
+    threshold at the nearer depth with the pixel's angle gain g (noise_model.speckle_deviations)."""
+    if not zn > 0.0:
+        return False
+    zq = min(zn, z)
+    thr = max(jump_rel * zq, thr_sig * (c0 + c1 * zq + c2 * zq * zq + g * zq * math.sqrt(zq)))
+    return abs(zn - z) <= thr
+
+
+@njit(**_JIT)
+def _speckle_dev2(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, buf):
+    """Squared deviation of pixel (v, u) at depth z from the median of its valid 8 neighbours when none
+    of them agrees with it, else 0 (noise_model.speckle_deviations)."""
+    H, W = depth.shape
+    k = 0
+    for dv in range(3):
+        r = v + dv - 1
+        if r < 0 or r >= H:
+            continue
+        for du in range(3):
+            c = u + du - 1
+            if c < 0 or c >= W or (dv == 1 and du == 1):
+                continue
+            zn = depth[r, c] * scale
+            if (zn >= zmin) & (zn <= zmax):
+                if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+                    return 0.0
+                buf[k] = zn
+                k += 1
+    if k == 0:
+        return 0.0
+    for i in range(1, k):                    # insertion sort of at most 8 depths
+        x = buf[i]
+        j = i - 1
+        while j >= 0 and buf[j] > x:
+            buf[j + 1] = buf[j]
+            j -= 1
+        buf[j + 1] = x
+    med = buf[k // 2] if k % 2 == 1 else (buf[k // 2 - 1] + buf[k // 2]) / 2.0
+    return (z - med) * (z - med)
 
 
 @njit(parallel=True, **_JIT)
@@ -373,6 +418,9 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
         cu = np.empty(W, dtype=np.int64)
         cz = np.empty(W)
         cvx = np.empty(W)
+        dv2 = np.empty(W)
+        cdv2 = np.empty(W)
+        nbuf = np.empty(8)
         # -inf beyond the image: not NaN (invalid) and never farther by more than thr, so the image
         # border is no edge
         zp[0] = -np.inf
@@ -393,12 +441,25 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 right = not (zp[u + 2] - z <= thr)
                 var_x = sR2 if right else z * z * pix_var_x
                 vx[u] = (sLR2 if right else sL2) if left else var_x
+            # speckles: no neighbour agrees (noise_model.speckle_deviations); the row neighbours settle
+            # almost every pixel, the other six are read only when both disagree
+            for u in range(W):
+                z = zp[u + 1]
+                d2 = 0.0
+                if z > 0.0:
+                    g = gain_px[by, u]
+                    if not (_agrees(zp[u], z, g, jump_rel, thr_sig, c0, c1, c2)
+                            or _agrees(zp[u + 2], z, g, jump_rel, thr_sig, c0, c1, c2)):
+                        d2 = _speckle_dev2(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2,
+                                           nbuf)
+                dv2[u] = d2
             k = 0
             for u in range(W):
                 z = zp[u + 1]
                 cu[k] = u
                 cz[k] = z
                 cvx[k] = vx[u]
+                cdv2[k] = dv2[u]
                 k += 0 if np.isnan(z) else 1
 
             # unsigned output index: no wraparound select, so the stores below are contiguous
@@ -427,6 +488,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 a_s = c0 + c1 * zs + c2 * zs * zs
                 k_s = zs * math.sqrt(zs)
                 s2 = a_s * a_s + 2.0 * a_s * k_s * eg_px[by, u] + k_s * k_s * eg2_px[by, u]
+                s2 = max(s2, cdv2[j])                # a speckle: at least its deviation from its neighbours
                 ru = up[u]
                 a0 = R00 * ru + b0
                 a1 = R10 * ru + b1
@@ -574,11 +636,13 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
         use_fit = np.isfinite(zf) & (np.abs(z - zf) <= NOISE_DEPTH_SIGMAS * s)
     z_noise = np.where(use_fit, zf, z)
     left, right = depth_edges(z, model=model, theta=theta)
+    speckle = speckle_deviations(z, model=model, theta=theta)
     valid = np.isfinite(z)
     pix = np.flatnonzero(valid.ravel())
     p = pts.reshape(-1, 3)[pix]
     cov = point_covariances(p, theta.ravel()[pix], left.ravel()[pix], right.ravel()[pix], fx=K[0, 0],
-                            fy=K[1, 1], model=model, z_noise=z_noise.ravel()[pix], theta_std=theta_std.ravel()[pix])
+                            fy=K[1, 1], model=model, z_noise=z_noise.ravel()[pix], theta_std=theta_std.ravel()[pix],
+                            min_axial_var=speckle.ravel()[pix])
     cov_map = to_map_frame(cov, p, T, P)
     points_map = p @ T[:3, :3].T + T[:3, 3]
     if bin_at_plane:          # x, y at the nearer of the local plane and the measured depth, z measured

@@ -9,6 +9,7 @@ from conftest import random_pose_cov, random_transform
 from noise_model import (
     D435,
     Workspace,
+    axial_sigma,
     deproject,
     depth_to_map_points,
     depth_to_map_points_reference,
@@ -61,6 +62,24 @@ def test_kernel_equals_reference_on_random_scenes(seed, dtype, with_pose):
     assert_same(a, b)
     assert np.all(np.isfinite(a.height_var)) and np.all(a.height_var > 0)
     assert np.all(np.isfinite(a.horizontal_cov))
+
+
+def test_a_speckle_is_as_uncertain_as_its_distance_from_its_neighbours():
+    """A lone pixel 1.5 m in front of a wall at 2 m (the paper's noise at grazing incidence puts such
+    pixels anywhere): its axial variance is at least 1.5^2, not the millimetres its own depth implies;
+    with T = I the map height is the camera z, so the height variance is the axial variance."""
+    H, W = 48, 64
+    z = np.full((H, W), 2.0)
+    z[20, 30] = 0.5
+    K = D435.intrinsics(848, 480) * np.array([[W / 848], [H / 480], [1.0]])
+    for impl in (depth_to_map_points, depth_to_map_points_reference):
+        mp = impl(z, K, np.eye(4))
+        i = int(np.flatnonzero(mp.pixel == 20 * W + 30)[0])
+        assert mp.height_var[i] >= 1.5 ** 2
+        others = np.delete(mp.height_var, i)            # the wall: sigma_z(2 m, 0)^2 (its window's angle
+        assert np.median(others) == pytest.approx(axial_sigma(2.0, 0.0) ** 2, rel=1e-9)   # is less sure)
+        assert others.max() < 0.1 * 1.5 ** 2
+    assert_same(depth_to_map_points(z, K, np.eye(4)), depth_to_map_points_reference(z, K, np.eye(4)))
 
 
 def test_kernel_equals_reference_on_a_full_frame_plane():
