@@ -7,7 +7,7 @@ axial_sigma(z, theta)                   sigma_z [m]
 expected_rms_error(z, ...)              the paper's equation (1) [m]
 depth_to_metres, deproject              depth image -> metres -> camera-frame points
 incidence_angles, depth_edges           theta per pixel; left/right depth-edge masks
-speckle_deviations                      squared deviation of pixels no neighbour agrees with
+despeckle                               pixels no neighbour agrees with: their neighbours' median
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
@@ -35,7 +35,7 @@ from .d435 import D435, THETA_MAX_DEFAULT, THETA_QUADRATURE, SensorModel, axial_
 from . import alternatives, effects, kernels, scene, sim
 from .effects import EFFECTS, correlated_noise, depth_bias
 from .geometry import (deproject, depth_edges, depth_to_metres, default_block_px, incidence_angle_stats, incidence_angles,
-                       speckle_deviations)
+                       despeckle)
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 from .scene import (
     Box,
@@ -65,7 +65,7 @@ __all__ = [
     "incidence_angles",
     "incidence_angle_stats",
     "depth_edges",
-    "speckle_deviations",
+    "despeckle",
     "default_block_px",
     "point_covariances",
     "to_map_frame",

@@ -96,7 +96,7 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
         (:func:`noise_model.axial_variance`) instead of sigma_z(theta)^2.
     min_axial_var : array_like, shape (N,), optional
         A floor [m^2] under the axial variance: a speckle's squared deviation from its neighbours
-        (:func:`noise_model.speckle_deviations`).
+        (:func:`noise_model.despeckle`).
 
     Returns
     -------

@@ -20,7 +20,7 @@ __all__ = [
     "incidence_angles",
     "incidence_angle_stats",
     "depth_edges",
-    "speckle_deviations",
+    "despeckle",
     "default_block_px",
     "plane_depths",
     "EDGE_JUMP_REL",
@@ -374,24 +374,25 @@ def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = E
     return left, right
 
 
-def speckle_deviations(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDGE_JUMP_SIGMAS,
-                       model: SensorModel = D435, theta=None) -> np.ndarray:
-    """Squared depth deviation [m^2] of each speckle from its neighbours; 0 for every other pixel.
+def despeckle(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDGE_JUMP_SIGMAS,
+               model: SensorModel = D435, theta=None):
+    """Speckles replaced by their neighbours' median depth, and how far each was from it.
 
     A valid pixel is a *speckle* when none of its 8 neighbours agrees with it: for each valid
     neighbour the depth difference exceeds the depth-edge threshold of :func:`depth_edges`,
     max(jump_rel z, jump_sigmas sqrt(2) sigma_z(z, theta)), with z the nearer of the two depths and
-    theta the pixel's own. Its deviation is the squared difference between its depth and the median
-    of its valid neighbours' depths; a pixel without valid neighbours has none (0).
+    theta the pixel's own. A pixel without valid neighbours is no speckle (nothing to compare with).
 
     Why: on a surface seen near grazing incidence the paper's sigma_z is metres (theta / (pi/2 -
     theta)^2), so the reference simulation, and a real D435 on a bad surface, returns the odd pixel
     anywhere between the camera and the far range. Such a pixel 2 m in front of its neighbours also
-    pulls the window's inverse-depth plane (and so sigma_z at that plane) towards the camera, and
-    gets a sigma of millimetres: measured on the simulated boxes walk, 0.3 % of the points, each
-    outweighing the hundreds of points of the cell it landed in. Nothing but its neighbours tells
-    the mapper where such a pixel's surface is, so its axial variance is at least this deviation
-    (:func:`noise_model.depth_to_map_points`).
+    pulls the window's inverse-depth plane (and so sigma_z at that plane) towards the camera, and got
+    a sigma of millimetres: measured on the simulated boxes walk, 0.3 % of the points, each
+    outweighing the hundreds of points of the cell it landed in, and a cell beside the walk that only
+    such pixels reached read the camera's height. Nothing but its neighbours says where a speckle's
+    surface is: :func:`noise_model.depth_to_map_points` places it at their median depth along its
+    ray, with the squared distance as the floor of its axial variance (the usual speckle filter of
+    stereo pipelines would drop it; it is kept, so the counts of points stay those of the image).
 
     Parameters
     ----------
@@ -406,7 +407,11 @@ def speckle_deviations(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: fl
 
     Returns
     -------
-    ndarray, shape (H, W), float64 [m^2]
+    depth : ndarray, shape (H, W), float64 [m]
+        The input (NaN where invalid) with each speckle's depth replaced by the median of its valid
+        neighbours' depths.
+    deviation2 : ndarray, shape (H, W), float64 [m^2]
+        (measured - median)^2 at the speckles, 0 elsewhere.
     """
     z = depth_to_metres(depth_m)
     jr = float(jump_rel)
@@ -427,10 +432,11 @@ def speckle_deviations(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: fl
         zq = np.where(np.isfinite(zq), zq, 1.0)
         thr = np.maximum(jr * zq, js * np.sqrt(2.0) * _axial_sigma_unchecked(zq, np.broadcast_to(th, zq.shape), model))
         agree = np.abs(nbrs - z) <= thr                                   # False where either is NaN
-    any_nbr = np.isfinite(nbrs).any(axis=0)
-    speckle = valid & any_nbr & ~agree.any(axis=0)
-    out = np.zeros(z.shape)
+    speckle = valid & np.isfinite(nbrs).any(axis=0) & ~agree.any(axis=0)
+    out = z.copy()
+    dev2 = np.zeros(z.shape)
     if speckle.any():
         med = np.nanmedian(nbrs[:, speckle], axis=0)
-        out[speckle] = (z[speckle] - med) ** 2
-    return out
+        dev2[speckle] = (z[speckle] - med) ** 2
+        out[speckle] = med
+    return out, dev2

@@ -37,7 +37,7 @@ from .geometry import (
     depth_to_metres,
     incidence_angle_stats,
     plane_depths,
-    speckle_deviations,
+    despeckle,
 )
 from .d435 import THETA_GRID, THETA_QUADRATURE, _axial_sigma_unchecked
 
@@ -202,7 +202,7 @@ def _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw):
 @njit(**_JIT)
 def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
     """Whether neighbour depth zn (NaN / -inf: none) agrees with z: |zn - z| within the depth-edge
-    threshold at the nearer depth with the pixel's angle gain g (noise_model.speckle_deviations)."""
+    threshold at the nearer depth with the pixel's angle gain g (noise_model.despeckle)."""
     if not zn > 0.0:
         return False
     zq = min(zn, z)
@@ -211,9 +211,9 @@ def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
 
 
 @njit(**_JIT)
-def _speckle_dev2(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, buf):
-    """Squared deviation of pixel (v, u) at depth z from the median of its valid 8 neighbours when none
-    of them agrees with it, else 0 (noise_model.speckle_deviations)."""
+def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, buf):
+    """The median depth of the valid 8 neighbours of pixel (v, u) at depth z when none of them agrees with
+    it (a speckle), else NaN (noise_model.despeckle)."""
     H, W = depth.shape
     k = 0
     for dv in range(3):
@@ -227,11 +227,11 @@ def _speckle_dev2(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c
             zn = depth[r, c] * scale
             if (zn >= zmin) & (zn <= zmax):
                 if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
-                    return 0.0
+                    return np.nan
                 buf[k] = zn
                 k += 1
     if k == 0:
-        return 0.0
+        return np.nan
     for i in range(1, k):                    # insertion sort of at most 8 depths
         x = buf[i]
         j = i - 1
@@ -239,8 +239,7 @@ def _speckle_dev2(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c
             buf[j + 1] = buf[j]
             j -= 1
         buf[j + 1] = x
-    med = buf[k // 2] if k % 2 == 1 else (buf[k // 2 - 1] + buf[k // 2]) / 2.0
-    return (z - med) * (z - med)
+    return buf[k // 2] if k % 2 == 1 else (buf[k // 2 - 1] + buf[k // 2]) / 2.0
 
 
 @njit(parallel=True, **_JIT)
@@ -418,8 +417,8 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
         cu = np.empty(W, dtype=np.int64)
         cz = np.empty(W)
         cvx = np.empty(W)
-        dv2 = np.empty(W)
-        cdv2 = np.empty(W)
+        medrow = np.empty(W)
+        cmed = np.empty(W)
         nbuf = np.empty(8)
         # -inf beyond the image: not NaN (invalid) and never farther by more than thr, so the image
         # border is no edge
@@ -439,27 +438,27 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 thr = max(jump_rel * z, thr_sig * (c0 + c1 * z + c2 * z * z + gain_px[by, u] * z * math.sqrt(z)))
                 left = not (zp[u] - z <= thr)
                 right = not (zp[u + 2] - z <= thr)
-                var_x = sR2 if right else z * z * pix_var_x
+                var_x = sR2 if right else -1.0      # -1: interior, the pixel footprint at the point's depth
                 vx[u] = (sLR2 if right else sL2) if left else var_x
-            # speckles: no neighbour agrees (noise_model.speckle_deviations); the row neighbours settle
+            # speckles: no neighbour agrees (noise_model.despeckle); the row neighbours settle
             # almost every pixel, the other six are read only when both disagree
             for u in range(W):
                 z = zp[u + 1]
-                d2 = 0.0
+                md = nan
                 if z > 0.0:
                     g = gain_px[by, u]
                     if not (_agrees(zp[u], z, g, jump_rel, thr_sig, c0, c1, c2)
                             or _agrees(zp[u + 2], z, g, jump_rel, thr_sig, c0, c1, c2)):
-                        d2 = _speckle_dev2(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2,
-                                           nbuf)
-                dv2[u] = d2
+                        md = _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2,
+                                             nbuf)
+                medrow[u] = md
             k = 0
             for u in range(W):
                 z = zp[u + 1]
                 cu[k] = u
                 cz[k] = z
                 cvx[k] = vx[u]
-                cdv2[k] = dv2[u]
+                cmed[k] = medrow[u]
                 k += 0 if np.isnan(z) else 1
 
             # unsigned output index: no wraparound select, so the stores below are contiguous
@@ -472,8 +471,12 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
             for j in range(np.uint64(k)):
                 u = cu[j]
                 z = cz[j]
-                var_x = cvx[j]
+                dev2 = 0.0
+                if not np.isnan(cmed[j]):        # a speckle: its depth is its neighbours' median, and as
+                    dev2 = (z - cmed[j]) * (z - cmed[j])     # uncertain as its distance from them
+                    z = cmed[j]
                 zz = z * z
+                var_x = cvx[j] if cvx[j] >= 0.0 else zz * pix_var_x
                 var_y = zz * pix_var_y
                 # sigma_z at the local plane's depth when the pixel lies within 3 sigma of it (a
                 # weight must not depend on the pixel's own noise), else at its own depth
@@ -488,7 +491,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 a_s = c0 + c1 * zs + c2 * zs * zs
                 k_s = zs * math.sqrt(zs)
                 s2 = a_s * a_s + 2.0 * a_s * k_s * eg_px[by, u] + k_s * k_s * eg2_px[by, u]
-                s2 = max(s2, cdv2[j])                # a speckle: at least its deviation from its neighbours
+                s2 = max(s2, dev2)
                 ru = up[u]
                 a0 = R00 * ru + b0
                 a1 = R10 * ru + b1
@@ -615,8 +618,8 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
                                   bin_at_plane: bool = True) -> MapPoints:
     """NumPy reference of :func:`depth_to_map_points`, composed of the public functions.
 
-    depth_to_metres -> deproject -> incidence_angle_stats -> depth_edges -> point_covariances ->
-    to_map_frame.
+    depth_to_metres -> deproject -> incidence_angle_stats, plane_depths -> depth_edges -> despeckle ->
+    point_covariances -> to_map_frame.
     """
     d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
                                                 max_depth_m, block_px)
@@ -624,6 +627,11 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     pts = deproject(z, K)
     theta, theta_std = incidence_angle_stats(pts, block_px=b)
     z_fit = plane_depths(pts, block_px=b)
+    left, right = depth_edges(z, model=model, theta=theta)
+    # a speckle's depth is its neighbours' median, with its distance from them as a variance floor;
+    # the planes, angles and edges above are those of the measured depths
+    z, dev2 = despeckle(z, model=model, theta=theta)
+    pts = deproject(z, K)
     # sigma_z at the denoised depth where the local plane describes the pixel (within 3 of the smaller
     # of the two sigmas, and inside the valid range), else at the pixel's own depth (edges, where the
     # window holds two surfaces; planes seen edge-on, whose depth runs away)
@@ -635,14 +643,12 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
                        _axial_sigma_unchecked(zz, th, model))
         use_fit = np.isfinite(zf) & (np.abs(z - zf) <= NOISE_DEPTH_SIGMAS * s)
     z_noise = np.where(use_fit, zf, z)
-    left, right = depth_edges(z, model=model, theta=theta)
-    speckle = speckle_deviations(z, model=model, theta=theta)
     valid = np.isfinite(z)
     pix = np.flatnonzero(valid.ravel())
     p = pts.reshape(-1, 3)[pix]
     cov = point_covariances(p, theta.ravel()[pix], left.ravel()[pix], right.ravel()[pix], fx=K[0, 0],
                             fy=K[1, 1], model=model, z_noise=z_noise.ravel()[pix], theta_std=theta_std.ravel()[pix],
-                            min_axial_var=speckle.ravel()[pix])
+                            min_axial_var=dev2.ravel()[pix])
     cov_map = to_map_frame(cov, p, T, P)
     points_map = p @ T[:3, :3].T + T[:3, 3]
     if bin_at_plane:          # x, y at the nearer of the local plane and the measured depth, z measured

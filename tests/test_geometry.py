@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from noise_model import D435, deproject, depth_edges, depth_to_metres, incidence_angles, speckle_deviations
+from noise_model import D435, deproject, depth_edges, depth_to_metres, incidence_angles, despeckle
 from noise_model.sim import render_planar_target
 
 K3 = np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]])   # a 3x3 image, centre pixel (1, 1)
@@ -94,27 +94,30 @@ def test_depth_edges_threshold_is_relative_and_noise_aware():
     assert left[0, 1]
 
 
-def test_speckle_deviations_by_hand():
+def test_despeckle_by_hand():
     z = np.full((5, 6), 2.0)
     z[2, 2] = 0.2                               # a lone pixel 1.8 m in front of a wall: a speckle
     z[0, 4] = z[0, 5] = 0.5                     # two neighbours that agree with each other: no speckle
     z[4, 0] = 3.0                               # a corner pixel: 3 neighbours, 1 valid (2 m)
     z[3, 0] = z[3, 1] = np.nan
-    d = speckle_deviations(z)
-    assert d[2, 2] == pytest.approx(1.8 ** 2)
-    assert d[4, 0] == pytest.approx(1.0)        # median of the valid neighbours (2 m)
-    assert d[0, 4] == 0 and d[0, 5] == 0
-    # the wall around the speckle agrees with itself; invalid pixels have no deviation
-    assert np.count_nonzero(d) == 2 and np.all(d[np.isnan(z)] == 0)
+    out, d = despeckle(z)
+    assert d[2, 2] == pytest.approx(1.8 ** 2) and out[2, 2] == 2.0
+    assert d[4, 0] == pytest.approx(1.0) and out[4, 0] == 2.0      # the median of its valid neighbours
+    assert d[0, 4] == 0 and d[0, 5] == 0 and out[0, 4] == 0.5
+    # the wall around the speckle agrees with itself; invalid pixels stay invalid, without deviation
+    assert np.count_nonzero(d) == 2 and np.all(d[np.isnan(z)] == 0) and np.all(np.isnan(out[np.isnan(z)]))
+    keep = d == 0
+    np.testing.assert_array_equal(out[keep], z[keep])
     # one neighbour within the depth-edge threshold (5 % at 1 m) is enough
-    assert speckle_deviations(np.array([[1.04, 1.0, 1.5]]))[0, 1] == 0
-    assert speckle_deviations(np.array([[1.06, 1.0, 1.5]]))[0, 1] == pytest.approx(((1.06 + 1.5) / 2 - 1.0) ** 2)
+    assert despeckle(np.array([[1.04, 1.0, 1.5]]))[1][0, 1] == 0
+    out, d = despeckle(np.array([[1.06, 1.0, 1.5]]))
+    assert out[0, 1] == pytest.approx((1.06 + 1.5) / 2) and d[0, 1] == pytest.approx(((1.06 + 1.5) / 2 - 1.0) ** 2)
     # alone in a sea of invalid pixels: nothing to compare with
     lone = np.full((3, 3), np.nan)
     lone[1, 1] = 1.0
-    assert speckle_deviations(lone)[1, 1] == 0
+    assert despeckle(lone)[1][1, 1] == 0 and despeckle(lone)[0][1, 1] == 1.0
     with pytest.raises(ValueError, match="theta"):
-        speckle_deviations(z, theta=np.zeros((2, 2)))
+        despeckle(z, theta=np.zeros((2, 2)))
 
 
 def test_depth_edges_rejects_bad_thresholds():

@@ -64,10 +64,11 @@ def test_kernel_equals_reference_on_random_scenes(seed, dtype, with_pose):
     assert np.all(np.isfinite(a.horizontal_cov))
 
 
-def test_a_speckle_is_as_uncertain_as_its_distance_from_its_neighbours():
+def test_a_speckle_is_placed_at_its_neighbours_depth_as_uncertain_as_its_distance_from_them():
     """A lone pixel 1.5 m in front of a wall at 2 m (the paper's noise at grazing incidence puts such
-    pixels anywhere): its axial variance is at least 1.5^2, not the millimetres its own depth implies;
-    with T = I the map height is the camera z, so the height variance is the axial variance."""
+    pixels anywhere): it lands on the wall, at the 2 m of its neighbours, with an axial variance of at
+    least 1.5^2, not the millimetres its own depth implies. With T = I the map height is the camera z,
+    so the height variance is the axial variance."""
     H, W = 48, 64
     z = np.full((H, W), 2.0)
     z[20, 30] = 0.5
@@ -75,6 +76,7 @@ def test_a_speckle_is_as_uncertain_as_its_distance_from_its_neighbours():
     for impl in (depth_to_map_points, depth_to_map_points_reference):
         mp = impl(z, K, np.eye(4))
         i = int(np.flatnonzero(mp.pixel == 20 * W + 30)[0])
+        assert mp.points_map[i, 2] == pytest.approx(2.0)
         assert mp.height_var[i] >= 1.5 ** 2
         others = np.delete(mp.height_var, i)            # the wall: sigma_z(2 m, 0)^2 (its window's angle
         assert np.median(others) == pytest.approx(axial_sigma(2.0, 0.0) ** 2, rel=1e-9)   # is less sure)
