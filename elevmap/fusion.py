@@ -133,9 +133,9 @@ class FusionParams:
         averages out in the cell's mean, and adding it as tau^2 made such cells' sigma several times
         too large. 1.5 by default; 1: any significant excess counts. Measured (``elevmap compare``, 60
         frames, seed 0, paper mapper; 1 / 2-sigma coverage stairs and boxes), after the speckle
-        handling and the random-effects prior: 0.791 / 0.953 and 0.760 / 0.924 with 1, 0.728 / 0.932
-        and 0.709 / 0.908 with 1.5, 0.705 / 0.927 and 0.691 / 0.904 with 2, 0.685 / 0.923 and
-        0.668 / 0.899 with 3 (before them: 0.719 / 0.933 and 0.746 / 0.928 with 2, 0.680 / 0.924 and
+        handling and the random-effects prior: 0.788 / 0.954 and 0.765 / 0.929 with 1, 0.728 / 0.932
+        and 0.712 / 0.911 with 1.5, 0.706 / 0.926 and 0.692 / 0.905 with 2, 0.683 / 0.923 and
+        0.665 / 0.900 with 3 (before them: 0.719 / 0.933 and 0.746 / 0.928 with 2, 0.680 / 0.924 and
         0.682 / 0.909 with 9): 1.5 is the one setting that keeps the stairs in both bands.
     neighbour_radius : int
         Half-width [cells] of the neighbourhood whose disagreement is added to a cell's variance

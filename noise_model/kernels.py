@@ -1,8 +1,8 @@
 """Depth image -> map-frame points with height variance and horizontal covariance, in one numba pass.
 
 :func:`depth_to_map_points` is the hot path of the mapper: per frame it deprojects every valid pixel,
-estimates the incidence angle from block-wise inverse-depth plane fits, finds depth edges, builds
-the D435 covariance of :func:`noise_model.point_covariances`, rotates it into the map frame and adds
+estimates the incidence angle from block-wise inverse-depth plane fits, finds depth edges, places
+speckles at their neighbours' depth (:func:`noise_model.despeckle`), builds the D435 covariance of :func:`noise_model.point_covariances`, rotates it into the map frame and adds
 the first-order pose term of :func:`noise_model.to_map_frame`. :func:`depth_to_map_points_reference`
 computes the same thing by composing those public NumPy functions, and the tests hold the two equal.
 
