@@ -206,8 +206,10 @@ def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
     if not zn > 0.0:
         return False
     zq = min(zn, z)
-    thr = max(jump_rel * zq, thr_sig * (c0 + c1 * zq + c2 * zq * zq + g * zq * math.sqrt(zq)))
-    return abs(zn - z) <= thr
+    d = abs(zn - z)
+    if d <= jump_rel * zq:                   # the relative part settles most pixels without a sqrt
+        return True
+    return d <= thr_sig * (c0 + c1 * zq + c2 * zq * zq + g * zq * math.sqrt(zq))
 
 
 @njit(**_JIT)
@@ -471,10 +473,12 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
             for j in range(np.uint64(k)):
                 u = cu[j]
                 z = cz[j]
-                dev2 = 0.0
-                if not np.isnan(cmed[j]):        # a speckle: its depth is its neighbours' median, and as
-                    dev2 = (z - cmed[j]) * (z - cmed[j])     # uncertain as its distance from them
-                    z = cmed[j]
+                # a speckle (median not NaN): its depth is its neighbours' median, and it is as uncertain
+                # as its distance from them (selects, so that the loop still vectorises)
+                md = cmed[j]
+                sp = md == md
+                dev2 = (z - md) * (z - md) if sp else 0.0
+                z = md if sp else z
                 zz = z * z
                 var_x = cvx[j] if cvx[j] >= 0.0 else zz * pix_var_x
                 var_y = zz * pix_var_y
