@@ -131,12 +131,13 @@ class FusionParams:
         surface in the cell, points bled over an edge. Below, the excess is the noise model
         misjudging its own sigma (the estimated incidence angle's error, unmodelled effects): it
         averages out in the cell's mean, and adding it as tau^2 made such cells' sigma several times
-        too large. 1.5 by default; 1: any significant excess counts. Measured (``elevmap compare``, 60
-        frames, seed 0, paper mapper; 1 / 2-sigma coverage stairs and boxes), after the speckle
-        handling and the random-effects prior: 0.788 / 0.954 and 0.765 / 0.929 with 1, 0.728 / 0.932
-        and 0.712 / 0.911 with 1.5, 0.706 / 0.926 and 0.692 / 0.905 with 2, 0.683 / 0.923 and
-        0.665 / 0.900 with 3 (before them: 0.719 / 0.933 and 0.746 / 0.928 with 2, 0.680 / 0.924 and
-        0.682 / 0.909 with 9): 1.5 is the one setting that keeps the stairs in both bands.
+        too large. 20 by default; 1: any significant excess counts. Measured (``elevmap compare``, 60
+        frames, seed 0, paper mapper) with the binning of mixed windows (``noise_model.mixed_windows``):
+        the mean NLL over the stairs, boxes, slope and rough walks is -2.065, -2.150, -2.180, -2.190,
+        -2.197, -2.197 with 1.5, 3, 5, 10, 20, 50 (1 / 2-sigma coverage stairs 0.783 / 0.961 ->
+        0.729 / 0.952, boxes 0.765 / 0.933 -> 0.698 / 0.912 from 1.5 to 20): it levels off from 10.
+        Before that binning, when nearer binning everywhere biased the near cells, 1.5 was set (stairs
+        0.728 / 0.932, boxes 0.712 / 0.911).
     neighbour_radius : int
         Half-width [cells] of the neighbourhood whose disagreement is added to a cell's variance
         (``neighbour_spread``, see :mod:`elevmap.neighbours`); 0: off. 4 (a 9 x 9 window, 0.36 m at
@@ -166,7 +167,7 @@ class FusionParams:
     max_points_per_frame: float | None = None
     scatter_inflation: bool = True
     spread_alpha: float | None = 0.5
-    spread_ratio: float = 1.5
+    spread_ratio: float = 20.0
     neighbour_radius: int = 4
     min_points: int = 3
 

@@ -8,6 +8,7 @@ expected_rms_error(z, ...)              the paper's equation (1) [m]
 depth_to_metres, deproject              depth image -> metres -> camera-frame points
 incidence_angles, depth_edges           theta per pixel; left/right depth-edge masks
 despeckle                               pixels no neighbour agrees with: their neighbours' median
+mixed_windows                           normal-estimation windows that hold more than one surface
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
@@ -35,7 +36,7 @@ from .d435 import D435, THETA_MAX_DEFAULT, THETA_QUADRATURE, SensorModel, axial_
 from . import alternatives, effects, kernels, scene, sim
 from .effects import EFFECTS, correlated_noise, depth_bias
 from .geometry import (deproject, depth_edges, depth_to_metres, default_block_px, incidence_angle_stats, incidence_angles,
-                       despeckle)
+                       despeckle, mixed_windows)
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 from .scene import (
     Box,
@@ -66,6 +67,7 @@ __all__ = [
     "incidence_angle_stats",
     "depth_edges",
     "despeckle",
+    "mixed_windows",
     "default_block_px",
     "point_covariances",
     "to_map_frame",

@@ -27,6 +27,7 @@ from .geometry import (
     RSS_FLOOR_REL,
     EDGE_JUMP_REL,
     EDGE_JUMP_SIGMAS,
+    MIXED_WINDOW_Z,
     NORMAL_MIN_POINTS,
     WINDOW_RADIUS_BLOCKS,
     _DEGENERATE_REL,
@@ -36,6 +37,7 @@ from .geometry import (
     depth_edges,
     depth_to_metres,
     incidence_angle_stats,
+    mixed_windows,
     plane_depths,
     despeckle,
 )
@@ -76,13 +78,17 @@ class MapPoints(NamedTuple):
         means and breaks their calibration. The plane's depth carries ~1/N of the pixel's own noise
         (N ~ 400 pixels in the window), so the cell is chosen (almost) independently of the height
         error. Measured on the simulated stairs and boxes walks (``elevmap compare``): 2-sigma
-        coverage 0.90 -> 0.92 and 0.76 -> 0.81. Where the measured point is *nearer* than the plane,
-        it is binned at its own depth: a plane fitted across an edge lies beyond the near surface (a
-        box top seen at a grazing angle is a strip a few pixels tall, its window mostly the floor
-        behind it), and binning there carries the near surface's height into the cells behind the
-        edge, which its own occlusion leaves sparsely seen; points binned a little too near land
+        coverage 0.90 -> 0.92 and 0.76 -> 0.81. In a window that holds more than one surface
+        (:func:`noise_model.mixed_windows`) a measured point *nearer* than the plane is binned at its
+        own depth: a plane fitted across an edge lies beyond the near surface (a box top seen at a
+        grazing angle is a strip a few pixels tall, its window mostly the floor behind it; a riser
+        and its tread), and binning there carries the near surface's height into the cells behind
+        the edge, which its own occlusion leaves sparsely seen; points binned a little too near land
         on cells the camera sees densely, where they are outvoted. Measured: RMSE 61.7 -> 37.3 mm
-        (stairs), 70.7 -> 59.7 mm (boxes).
+        (stairs), 70.7 -> 59.7 mm (boxes). Only there: on one surface it would take the pixels whose
+        noise is negative nearer, with their too-high heights, and leave the others (a flat floor
+        read +6 mm beside the walk, -3 to -6 mm beyond 1 m; 2-sigma coverage of the cells within
+        1 m of the walk 0.86 -> 0.97 once restricted to mixed windows).
     height_var : ndarray, shape (N,) [m^2]
         Variance of the map-frame z of each point (Sigma_map[2, 2]).
     horizontal_cov : ndarray, shape (N, 3) [m^2]
@@ -244,9 +250,59 @@ def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0,
     return buf[k // 2] if k % 2 == 1 else (buf[k // 2 - 1] + buf[k // 2]) / 2.0
 
 
+@njit(**_JIT)
+def _window_mixed(M, by, bx, radius, a, b_, c, mix_z, floor_rel):
+    """Whether the window of block (by, bx) holds more than one surface: numba version of
+    :func:`noise_model.geometry.mixed_windows` for one block, with the window's plane w = a u' + b_ v' + c."""
+    nby, nbx = M.shape[0], M.shape[1]
+    between = 0.0
+    within = 0.0
+    dof = 0.0
+    nblocks = 0.0
+    ntot = 0.0
+    swtot = 0.0
+    for i in range(max(0, by - radius), min(nby, by + radius + 1)):
+        for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
+            n = M[i, j, 0]
+            if n < 2.0:
+                continue
+            r, rss = _block_residuals(M, i, j, a, b_, c)
+            between += n * r * r
+            within += max(rss - n * r * r, 0.0)
+            dof += n - 1.0
+            nblocks += 1.0
+            ntot += n
+            swtot += M[i, j, 3]
+    return _mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel)
+
+
+@njit(**_JIT)
+def _block_residuals(M, i, j, a, b_, c):
+    """(mean, sum of squares) of the residuals w - (a u' + b_ v' + c) over block (i, j), from its moments."""
+    n, su, sv, sw, suu, suv, svv, suw, svw, sww = (M[i, j, 0], M[i, j, 1], M[i, j, 2], M[i, j, 3], M[i, j, 4],
+                                                   M[i, j, 5], M[i, j, 6], M[i, j, 7], M[i, j, 8], M[i, j, 9])
+    rs = sw - a * su - b_ * sv - c * n
+    rss = (sww - 2.0 * a * suw - 2.0 * b_ * svw - 2.0 * c * sw + a * a * suu + 2.0 * a * b_ * suv + b_ * b_ * svv
+           + 2.0 * a * c * su + 2.0 * b_ * c * sv + c * c * n)
+    return rs / n, rss
+
+
+@njit(**_JIT)
+def _mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel):
+    """The test of noise_model.geometry.mixed_windows from a window's sums (scalar version)."""
+    if nblocks <= 3.0 or dof <= 0.0:
+        return True
+    mw = swtot / ntot
+    if within <= floor_rel * mw * mw * dof:          # noise-free: any structure beyond rounding is a second surface
+        return between > floor_rel * mw * mw * ntot
+    k = nblocks - 3.0
+    q = 1.0 - 2.0 / (9.0 * k) + mix_z * math.sqrt(2.0 / (9.0 * k))
+    return between * dof > q * q * q * k * within
+
+
 @njit(parallel=True, **_JIT)
 def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params, zrange, block, radius,
-                         min_points, degenerate_rel, bin_at_plane, hx, hw, gx, gw, pts, hvar, hcov, pix):
+                         min_points, degenerate_rel, bin_at_plane, mix_z, hx, hw, gx, gw, pts, hvar, hcov, pix):
     """Fill columns 0..N-1 of pts (3, n), hvar (n,), hcov (3, n), pix (n,) with the frame's valid
     pixels in row-major order; return N.
 
@@ -344,6 +400,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     alpha_px = np.empty((nby, W))
     beta_px = np.empty((nby, W))
     gamma_px = np.empty((nby, W))
+    mixed_px = np.empty((nby, W))
     for by in prange(nby):
         Vs = np.zeros((nbx, 10))
         for i in range(max(0, by - radius), min(nby, by + radius + 1)):
@@ -357,6 +414,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
             eg2 = 0.0
             pa = pb = 0.0
             pg = np.nan
+            mixed = True
             if M[by, bx, 0] > 0.0:      # a block without valid pixels needs no gain
                 S[:] = 0.0
                 for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
@@ -364,6 +422,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                         S[c] += Vs[j, c]
                 t, pa, pb, pg, ok = _plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
                 ts = _theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
+                mixed = _window_mixed(M, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
                 if not ok:
                     pg = np.nan
                 eg, eg2 = _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw)
@@ -376,6 +435,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 alpha_px[by, u] = pa
                 beta_px[by, u] = pb
                 gamma_px[by, u] = pg
+                mixed_px[by, u] = 1.0 if mixed else 0.0
 
     # output offsets (exclusive prefix sum of the row counts)
     offsets = np.empty(H + 1, dtype=np.int64)
@@ -520,7 +580,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 i = k0 + j
                 # x, y where the ray meets the local plane (the cell the pixel looks at), or at the
                 # measured depth where that is nearer; z from the measured depth (see MapPoints)
-                zb = min(zs, z) if bin_at_plane else z
+                zb = (min(zs, z) if mixed_px[by, u] > 0.0 else zs) if bin_at_plane else z
                 pts[0, i] = zb * a0 + t0
                 pts[1, i] = zb * a1 + t1
                 pts[2, i] = q2 + t2
@@ -583,9 +643,9 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         Reused buffers of this image size; the result is then a view into it, valid until the
         workspace's next use. Without one, fresh arrays are returned.
     bin_at_plane : bool
-        Place each point's x, y where its ray meets the local plane, or at its measured depth where
-        that is nearer (see :class:`MapPoints`); False:
-        at its measured depth.
+        Place each point's x, y where its ray meets the local plane, or, in a window holding more than
+        one surface, at its measured depth where that is nearer (see :class:`MapPoints`); False: at
+        its measured depth.
 
     Returns
     -------
@@ -605,7 +665,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         N = _depth_to_map_kernel(d, scale, intr, T, np.zeros((6, 6)) if P is None else P, P is not None,
                                  model.params_array(), edge, np.array([zmin, zmax]), b, WINDOW_RADIUS_BLOCKS,
                                  NORMAL_MIN_POINTS,
-                                 _DEGENERATE_REL, bool(bin_at_plane), _GH_X, _GH_W, _GRID_X, _GRID_W, ws.points_map, ws.height_var,
+                                 _DEGENERATE_REL, bool(bin_at_plane), MIXED_WINDOW_Z, _GH_X, _GH_W, _GRID_X, _GRID_W,
+                                 ws.points_map, ws.height_var,
                                  ws.horizontal_cov,
                                  ws.pixel)
     finally:
@@ -622,8 +683,8 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
                                   bin_at_plane: bool = True) -> MapPoints:
     """NumPy reference of :func:`depth_to_map_points`, composed of the public functions.
 
-    depth_to_metres -> deproject -> incidence_angle_stats, plane_depths -> depth_edges -> despeckle ->
-    point_covariances -> to_map_frame.
+    depth_to_metres -> deproject -> incidence_angle_stats, plane_depths -> depth_edges, mixed_windows ->
+    despeckle -> point_covariances -> to_map_frame.
     """
     d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
                                                 max_depth_m, block_px)
@@ -632,6 +693,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     theta, theta_std = incidence_angle_stats(pts, block_px=b)
     z_fit = plane_depths(pts, block_px=b)
     left, right = depth_edges(z, model=model, theta=theta)
+    mixed = mixed_windows(pts, block_px=b)
     # a speckle's depth is its neighbours' median, with its distance from them as a variance floor;
     # the planes, angles and edges above are those of the measured depths
     z, dev2 = despeckle(z, model=model, theta=theta)
@@ -655,8 +717,10 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
                             min_axial_var=dev2.ravel()[pix])
     cov_map = to_map_frame(cov, p, T, P)
     points_map = p @ T[:3, :3].T + T[:3, 3]
-    if bin_at_plane:          # x, y at the nearer of the local plane and the measured depth, z measured
-        pb = p * (np.minimum(z_noise.ravel()[pix], p[:, 2]) / p[:, 2])[:, None]
+    if bin_at_plane:          # x, y at the local plane (in a mixed window: or the measured depth where nearer)
+        zn = z_noise.ravel()[pix]
+        zb = np.where(mixed.ravel()[pix], np.minimum(zn, p[:, 2]), zn)
+        pb = p * (zb / p[:, 2])[:, None]
         points_map[:, :2] = (pb @ T[:3, :3].T + T[:3, 3])[:, :2]
     hcov = np.stack([cov_map[:, 0, 0], cov_map[:, 0, 1], cov_map[:, 1, 1]], axis=1)
     return MapPoints(points_map, cov_map[:, 2, 2].copy(), hcov, pix.astype(np.int64))

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from noise_model import D435, deproject, depth_edges, depth_to_metres, incidence_angles, despeckle
+from noise_model import D435, axial_sigma, deproject, depth_edges, depth_to_metres, incidence_angles, despeckle, mixed_windows
 from noise_model.sim import render_planar_target
 
 K3 = np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]])   # a 3x3 image, centre pixel (1, 1)
@@ -118,6 +118,29 @@ def test_despeckle_by_hand():
     assert despeckle(lone)[1][1, 1] == 0 and despeckle(lone)[0][1, 1] == 1.0
     with pytest.raises(ValueError, match="theta"):
         despeckle(z, theta=np.zeros((2, 2)))
+
+
+def test_mixed_windows_on_one_surface_and_across_a_step(rng):
+    """One noisy wall: the window test (at its 1e-3 level) flags almost no window; a 0.3 m step between
+    two walls: every window that straddles it, and none of those far from it."""
+    K = D435.intrinsics(424, 240)
+    z, _ = render_planar_target(K, 424, 240, 1.5, yaw_deg=40.0)
+    noisy = z + rng.normal(0.0, 1.0, z.shape) * axial_sigma(z, np.radians(40.0))     # the paper's noise
+    m = mixed_windows(deproject(noisy, K))
+    assert m.mean() < 0.01
+    step = np.where(np.arange(424)[None, :] < 212, 1.0, 1.3) * np.ones((240, 1))
+    step = step + rng.normal(0.0, 0.003, step.shape)
+    m = mixed_windows(deproject(step, K))     # 4 px blocks, windows of 5 x 5 blocks: blocks 51-54 (columns
+    assert m[:, 204:220].all()                # 204-219) have the step (between blocks 52 and 53) in theirs
+    assert m[:, :180].mean() < 0.01 and m[:, 244:].mean() < 0.01     # the test's own false alarms
+    # noise-free: an exact plane is one surface, an exact step two
+    K60 = np.array([[30.0, 0.0, 30.0], [0.0, 30.0, 20.0], [0.0, 0.0, 1.0]])
+    exact = mixed_windows(deproject(np.full((40, 60), 2.0), K60), block_px=4)
+    assert not exact.any()
+    two = np.where(np.arange(60)[None, :] < 28, 2.0, 2.5) * np.ones((40, 1))      # step between blocks 6, 7
+    assert mixed_windows(deproject(two, K60), block_px=4)[:, 20:36].all()
+    with pytest.raises(ValueError, match="z must"):
+        mixed_windows(deproject(two, K60), z=-1.0)
 
 
 def test_depth_edges_rejects_bad_thresholds():

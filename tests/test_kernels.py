@@ -84,6 +84,35 @@ def test_a_speckle_is_placed_at_its_neighbours_depth_as_uncertain_as_its_distanc
     assert_same(depth_to_map_points(z, K, np.eye(4)), depth_to_map_points_reference(z, K, np.eye(4)))
 
 
+def test_binning_is_symmetric_on_one_surface_and_keeps_a_thin_strip_at_its_own_depth(rng):
+    """T = I, so a point's map x, y are its camera x, y at the depth it was binned at. On one noisy wall
+    every point is binned at its plane's depth, whichever side of it the noise put it (so binning adds no
+    height bias); a strip 4 px tall at 1 m in front of a 1.5 m wall makes its windows mixed, and its
+    pixels are binned at their own depth, not at the plane fitted mostly to the wall behind."""
+    H, W = 120, 212
+    K = np.array([[106.0, 0.0, 106.0], [0.0, 106.0, 60.0], [0.0, 0.0, 1.0]])
+    u = (np.arange(W) - K[0, 2]) / K[0, 0]
+    z_true = np.full((H, W), 1.5)
+    z = z_true + rng.normal(0.0, 0.01, (H, W))
+    for impl in (depth_to_map_points, depth_to_map_points_reference):
+        mp = impl(z, K, np.eye(4), block_px=4)
+        v_, u_ = np.divmod(mp.pixel, W)
+        far = np.abs(u[u_]) > 0.2
+        z_bin = mp.points_map[far, 0] / u[u_][far]
+        z_meas = z[v_, u_][far]
+        at_own = np.abs(z_bin - z_meas) < 1e-9
+        assert np.mean(at_own & (z_meas < 1.5)) < 0.01          # nearer points are not moved to their depth
+        assert abs(np.mean(z_bin) - 1.5) < 0.002
+    strip = z.copy()
+    strip[60:64] = 1.0 + rng.normal(0.0, 0.003, (4, W))
+    for impl in (depth_to_map_points, depth_to_map_points_reference):
+        mp = impl(strip, K, np.eye(4), block_px=4)
+        v_, u_ = np.divmod(mp.pixel, W)
+        sel = (v_ >= 60) & (v_ < 64) & (np.abs(u[u_]) > 0.2)
+        z_bin = mp.points_map[sel, 0] / u[u_][sel]
+        assert np.all(np.abs(z_bin - strip[v_[sel], u_[sel]]) < 1e-9)
+
+
 def test_kernel_equals_reference_on_a_full_frame_plane():
     K = D435.intrinsics(848, 480)
     z, _ = render_planar_target(K, 848, 480, 1.2, 25.0, -35.0, kind="board", width_m=0.6, height_m=0.9,

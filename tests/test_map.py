@@ -342,14 +342,15 @@ def test_a_cell_started_by_one_wrong_point_follows_the_points_that_agree(impl):
 
 def test_spread_counts_only_beyond_the_spread_ratio(rng):
     """Points that scatter 2x their stated sigma (a misjudged noise model) add no spread with ratio 9;
-    points 4x beyond it (a second surface) do; ratio 1 counts any significant excess. The default 1.5:
-    a 10 % sigma error (variance ratio 1.21) adds none, a 50 % one (2.25) does."""
+    points 4x beyond it (a second surface) do; ratio 1 counts any significant excess. Ratio 1.5: a 10 %
+    sigma error (variance ratio 1.21) adds none, a 50 % one (2.25) does. The default, 20, counts a second
+    surface (10 cm levels under 5 mm noise scatter ~100x their variance) and not a misjudged sigma."""
     var = np.full(400, 0.005 ** 2)
     xy = np.full((400, 2), 0.5)
     fine = dict(min_variance=1e-12)
-    assert FusionParams().spread_ratio == 1.5
+    assert FusionParams().spread_ratio == 20.0
     for scale, ratio, expect in ((2.0, 9.0, False), (4.0, 9.0, True), (2.0, 1.0, True), (1.1, 1.5, False),
-                                 (1.5, 1.5, True)):
+                                 (1.5, 1.5, True), (4.0, 20.0, False), (10.0, 20.0, True)):
         m = small_map(fusion_params=FusionParams(spread_ratio=ratio, scatter_inflation=False, **fine))
         m.update(np.column_stack([xy, rng.normal(0.0, scale * 0.005, 400)]), var)
         assert (m.layer("spread")[1, 1] > 0) == expect, (scale, ratio)
