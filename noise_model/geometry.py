@@ -467,10 +467,10 @@ def mixed_windows(points_cam, block_px: int | None = None, min_points: int = NOR
     The window's plane (the inverse-depth fit of :func:`incidence_angles`) leaves each of its 5 x 5
     blocks a mean residual r_j over the block's n_j pixels and a scatter about that mean. On one surface
     with independent noise the block means scatter as their pixels do: F = [sum n_j r_j^2 / (B - 3)] /
-    [sum (RSS_j - n_j r_j^2) / sum (n_j - 1)] follows an F distribution with B - 3 and sum (n_j - 1)
-    degrees of freedom (B blocks with at least 2 pixels). Where blocks lie on another surface (a box
-    top's strip in a window of floor, a riser and its tread, a step) their means depart together and F
-    is large. Mixed: F above its 1 - 1e-3 quantile (``z``, Wilson-Hilferty for the numerator's
+    [(RSS - sum n_j r_j^2) / sum (n_j - 1)] follows an F distribution with B - 3 and sum (n_j - 1)
+    degrees of freedom (B blocks with a valid pixel, RSS the window's residual sum of squares). Where
+    blocks lie on another surface (a box top's strip in a window of floor, a riser and its tread, a
+    step) their means depart together and F is large. Mixed: F above its 1 - 1e-3 quantile (``z``, Wilson-Hilferty for the numerator's
     chi-square; the denominator's degrees of freedom are in the hundreds). Also mixed: windows without
     a plane or with at most 3 blocks (nothing to test). Noise-free windows are mixed when their blocks
     depart from the plane beyond the rounding of the moments.
@@ -513,29 +513,22 @@ def mixed_windows(points_cam, block_px: int | None = None, min_points: int = NOR
     pad = np.zeros((nby + 2 * r, nbx + 2 * r, 10))
     pad[r:-r, r:-r] = Mb
     between = np.zeros((nby, nbx))
-    within = np.zeros((nby, nbx))
     dof = np.zeros((nby, nbx))
     nblocks = np.zeros((nby, nbx))
-    ntot = np.zeros((nby, nbx))
-    swtot = np.zeros((nby, nbx))
     a, bb, c = (np.where(ok, x, 0.0) for x in (alpha, beta, gamma))
     for i in range(2 * r + 1):
         for j in range(2 * r + 1):
             Mj = pad[i:i + nby, j:j + nbx]
             n = Mj[..., 0]
-            use = n >= 2.0
-            nn = np.where(use, n, 1.0)
+            use = n > 0.0
             rs = Mj[..., 3] - a * Mj[..., 1] - bb * Mj[..., 2] - c * n
-            rss = (Mj[..., 9] - 2.0 * a * Mj[..., 7] - 2.0 * bb * Mj[..., 8] - 2.0 * c * Mj[..., 3]
-                   + a * a * Mj[..., 4] + 2.0 * a * bb * Mj[..., 5] + bb * bb * Mj[..., 6]
-                   + 2.0 * a * c * Mj[..., 1] + 2.0 * bb * c * Mj[..., 2] + c * c * n)
-            rm = rs / nn
-            between += np.where(use, n * rm * rm, 0.0)
-            within += np.where(use, np.maximum(rss - n * rm * rm, 0.0), 0.0)
+            between += np.where(use, rs * rs / np.where(use, n, 1.0), 0.0)
             dof += np.where(use, n - 1.0, 0.0)
             nblocks += use
-            ntot += np.where(use, n, 0.0)
-            swtot += np.where(use, Mj[..., 3], 0.0)
+    ntot, su, sv, swtot, suu, suv, svv, suw, svw, sww = np.moveaxis(S, -1, 0)
+    rss = (sww - 2.0 * a * suw - 2.0 * bb * svw - 2.0 * c * swtot + a * a * suu + 2.0 * a * bb * suv + bb * bb * svv
+           + 2.0 * a * c * su + 2.0 * bb * c * sv + c * c * ntot)
+    within = np.maximum(rss - between, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mw = swtot / np.where(ntot > 0, ntot, 1.0)
         exact = within <= RSS_FLOOR_REL * mw * mw * dof

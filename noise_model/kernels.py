@@ -251,40 +251,26 @@ def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0,
 
 
 @njit(**_JIT)
-def _window_mixed(M, by, bx, radius, a, b_, c, mix_z, floor_rel):
-    """Whether the window of block (by, bx) holds more than one surface: numba version of
-    :func:`noise_model.geometry.mixed_windows` for one block, with the window's plane w = a u' + b_ v' + c."""
+def _window_mixed(M, S, by, bx, radius, a, b_, c, mix_z, floor_rel):
+    """Whether the window of block (by, bx), with moments S summed over it and plane
+    w = a u' + b_ v' + c, holds more than one surface: numba version of
+    :func:`noise_model.geometry.mixed_windows` for one block."""
     nby, nbx = M.shape[0], M.shape[1]
     between = 0.0
-    within = 0.0
     dof = 0.0
     nblocks = 0.0
-    ntot = 0.0
-    swtot = 0.0
     for i in range(max(0, by - radius), min(nby, by + radius + 1)):
         for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
             n = M[i, j, 0]
-            if n < 2.0:
-                continue
-            r, rss = _block_residuals(M, i, j, a, b_, c)
-            between += n * r * r
-            within += max(rss - n * r * r, 0.0)
-            dof += n - 1.0
-            nblocks += 1.0
-            ntot += n
-            swtot += M[i, j, 3]
-    return _mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel)
-
-
-@njit(**_JIT)
-def _block_residuals(M, i, j, a, b_, c):
-    """(mean, sum of squares) of the residuals w - (a u' + b_ v' + c) over block (i, j), from its moments."""
-    n, su, sv, sw, suu, suv, svv, suw, svw, sww = (M[i, j, 0], M[i, j, 1], M[i, j, 2], M[i, j, 3], M[i, j, 4],
-                                                   M[i, j, 5], M[i, j, 6], M[i, j, 7], M[i, j, 8], M[i, j, 9])
-    rs = sw - a * su - b_ * sv - c * n
+            if n > 0.0:
+                rs = M[i, j, 3] - a * M[i, j, 1] - b_ * M[i, j, 2] - c * n
+                between += rs * rs / n
+                dof += n - 1.0
+                nblocks += 1.0
+    n, su, sv, sw, suu, suv, svv, suw, svw, sww = S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7], S[8], S[9]
     rss = (sww - 2.0 * a * suw - 2.0 * b_ * svw - 2.0 * c * sw + a * a * suu + 2.0 * a * b_ * suv + b_ * b_ * svv
            + 2.0 * a * c * su + 2.0 * b_ * c * sv + c * c * n)
-    return rs / n, rss
+    return _mixed_from_sums(between, max(rss - between, 0.0), dof, nblocks, n, sw, mix_z, floor_rel)
 
 
 @njit(**_JIT)
@@ -422,7 +408,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                         S[c] += Vs[j, c]
                 t, pa, pb, pg, ok = _plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
                 ts = _theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
-                mixed = _window_mixed(M, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
+                mixed = _window_mixed(M, S, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
                 if not ok:
                     pg = np.nan
                 eg, eg2 = _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw)
