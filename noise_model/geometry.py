@@ -223,6 +223,14 @@ def _centred_moments(S, n):
             S[8] / n - mv * mw, S[9] / n - mw * mw)
 
 
+def _plane_rss(S, n, alpha, beta):
+    """Residual sum of squares of the least-squares plane w = alpha u' + beta v' + gamma over the
+    summed moments S (along its first axis) of n points. Plain arithmetic: the numba kernels compile
+    this same function (``noise_model.kernels``)."""
+    _, _, _, _, _, _, cuw, cvw, cww = _centred_moments(S, n)
+    return n * (cww - alpha * cuw - beta * cvw)
+
+
 def _theta_std_from_moments_numpy(S, alpha, beta, gamma, ok):
     """Standard deviation [rad] of theta = atan2(|(alpha, beta)|, |gamma|) of the plane fit of the summed
     moments S (..., 10) = (n, su, sv, sw, suu, suv, svv, suw, svw, sww); 0 where not ok or n <= 3."""
@@ -343,6 +351,25 @@ def plane_depths(points_cam, block_px: int | None = None, min_points: int = NORM
 _DEGENERATE_REL = 1e-9
 
 
+def _jump_inputs(depth_m, jump_rel, jump_sigmas, theta):
+    """(z [m] with NaN where invalid, valid, theta with 0 where unknown, jump_rel, jump_sigmas), checked."""
+    z = depth_to_metres(depth_m)
+    jr = float(jump_rel)
+    js = float(jump_sigmas)
+    if not (np.isfinite(jr) and jr >= 0 and np.isfinite(js) and js >= 0):
+        raise ValueError(f"jump_rel and jump_sigmas must be finite and >= 0, got {jump_rel}, {jump_sigmas}")
+    valid = np.isfinite(z)
+    th = np.zeros(z.shape) if theta is None else np.asarray(theta, dtype=np.float64)
+    if th.shape != z.shape:
+        raise ValueError(f"theta must have the depth image's shape {z.shape}, got {th.shape}")
+    return z, valid, np.where(valid & np.isfinite(th), th, 0.0), jr, js
+
+
+def _jump_threshold(z, theta, jump_rel, jump_sigmas, model):
+    """The depth-edge threshold max(jump_rel z, jump_sigmas sqrt(2) sigma_z(z, theta)) [m]."""
+    return np.maximum(jump_rel * z, jump_sigmas * np.sqrt(2.0) * _axial_sigma_unchecked(z, theta, model))
+
+
 def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDGE_JUMP_SIGMAS,
                 model: SensorModel = D435, theta=None):
     """Pixels on the left and right edges of depth discontinuities (the paper's lateral-noise edges).
@@ -372,18 +399,8 @@ def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = E
     -------
     edge_left, edge_right : ndarray of bool, shape (H, W)
     """
-    z = depth_to_metres(depth_m)
-    jr = float(jump_rel)
-    js = float(jump_sigmas)
-    if not (np.isfinite(jr) and jr >= 0 and np.isfinite(js) and js >= 0):
-        raise ValueError(f"jump_rel and jump_sigmas must be finite and >= 0, got {jump_rel}, {jump_sigmas}")
-    valid = np.isfinite(z)
-    zf = np.where(valid, z, 1.0)
-    th = np.zeros(z.shape) if theta is None else np.asarray(theta, dtype=np.float64)
-    if th.shape != z.shape:
-        raise ValueError(f"theta must have the depth image's shape {z.shape}, got {th.shape}")
-    th = np.where(valid & np.isfinite(th), th, 0.0)
-    thr = np.maximum(jr * zf, js * np.sqrt(2.0) * _axial_sigma_unchecked(zf, th, model))
+    z, valid, th, jr, js = _jump_inputs(depth_m, jump_rel, jump_sigmas, theta)
+    thr = _jump_threshold(np.where(valid, z, 1.0), th, jr, js, model)
     left = np.zeros(z.shape, dtype=bool)
     right = np.zeros(z.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
@@ -431,24 +448,15 @@ def despeckle(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDG
     deviation2 : ndarray, shape (H, W), float64 [m^2]
         (measured - median)^2 at the speckles, 0 elsewhere.
     """
-    z = depth_to_metres(depth_m)
-    jr = float(jump_rel)
-    js = float(jump_sigmas)
-    if not (np.isfinite(jr) and jr >= 0 and np.isfinite(js) and js >= 0):
-        raise ValueError(f"jump_rel and jump_sigmas must be finite and >= 0, got {jump_rel}, {jump_sigmas}")
+    z, valid, th, jr, js = _jump_inputs(depth_m, jump_rel, jump_sigmas, theta)
     H, W = z.shape
-    valid = np.isfinite(z)
-    th = np.zeros(z.shape) if theta is None else np.asarray(theta, dtype=np.float64)
-    if th.shape != z.shape:
-        raise ValueError(f"theta must have the depth image's shape {z.shape}, got {th.shape}")
-    th = np.where(valid & np.isfinite(th), th, 0.0)
     zp = np.pad(z, 1, constant_values=np.nan)
     offsets = [(dv, du) for dv in (-1, 0, 1) for du in (-1, 0, 1) if (dv, du) != (0, 0)]
     nbrs = np.stack([zp[1 + dv:1 + dv + H, 1 + du:1 + du + W] for dv, du in offsets])   # (8, H, W)
     with np.errstate(invalid="ignore"):
         zq = np.where(nbrs < z, nbrs, z)                                  # the nearer depth
         zq = np.where(np.isfinite(zq), zq, 1.0)
-        thr = np.maximum(jr * zq, js * np.sqrt(2.0) * _axial_sigma_unchecked(zq, np.broadcast_to(th, zq.shape), model))
+        thr = _jump_threshold(zq, np.broadcast_to(th, zq.shape), jr, js, model)
         agree = np.abs(nbrs - z) <= thr                                   # False where either is NaN
     speckle = valid & np.isfinite(nbrs).any(axis=0) & ~agree.any(axis=0)
     out = z.copy()
@@ -525,10 +533,8 @@ def mixed_windows(points_cam, block_px: int | None = None, min_points: int = NOR
             between += np.where(use, rs * rs / np.where(use, n, 1.0), 0.0)
             dof += np.where(use, n - 1.0, 0.0)
             nblocks += use
-    ntot, su, sv, swtot, suu, suv, svv, suw, svw, sww = np.moveaxis(S, -1, 0)
-    rss = (sww - 2.0 * a * suw - 2.0 * bb * svw - 2.0 * c * swtot + a * a * suu + 2.0 * a * bb * suv + bb * bb * svv
-           + 2.0 * a * c * su + 2.0 * bb * c * sv + c * c * ntot)
-    within = np.maximum(rss - between, 0.0)
+    ntot, swtot = S[..., 0], S[..., 3]
+    within = np.maximum(_plane_rss(np.moveaxis(S, -1, 0), np.where(ntot > 0, ntot, 1.0), a, bb) - between, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mw = swtot / np.where(ntot > 0, ntot, 1.0)
         exact = within <= RSS_FLOOR_REL * mw * mw * dof

@@ -140,6 +140,13 @@ _centred = njit(**_JIT)(_centred_moments)
 
 
 @njit(**_JIT)
+def _rss(S, n, alpha, beta):
+    """numba version of :func:`noise_model.geometry._plane_rss` (the same arithmetic on ``_centred``)."""
+    _, _, _, _, _, _, cuw, cvw, cww = _centred(S, n)
+    return n * (cww - alpha * cuw - beta * cvw)
+
+
+@njit(**_JIT)
 def _plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
     """(theta [rad], alpha, beta, gamma, ok) of the inverse-depth plane fit w = alpha u' + beta v' + gamma
     of summed moments S = (n, su, sv, sw, suu, suv, svv, suw, svw); see :func:`noise_model.incidence_angles`."""
@@ -267,10 +274,8 @@ def _window_mixed(M, S, by, bx, radius, a, b_, c, mix_z, floor_rel):
                 between += rs * rs / n
                 dof += n - 1.0
                 nblocks += 1.0
-    n, su, sv, sw, suu, suv, svv, suw, svw, sww = S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7], S[8], S[9]
-    rss = (sww - 2.0 * a * suw - 2.0 * b_ * svw - 2.0 * c * sw + a * a * suu + 2.0 * a * b_ * suv + b_ * b_ * svv
-           + 2.0 * a * c * su + 2.0 * b_ * c * sv + c * c * n)
-    return _mixed_from_sums(between, max(rss - between, 0.0), dof, nblocks, n, sw, mix_z, floor_rel)
+    rss = _rss(S, S[0], a, b_)
+    return _mixed_from_sums(between, max(rss - between, 0.0), dof, nblocks, S[0], S[3], mix_z, floor_rel)
 
 
 @njit(**_JIT)
