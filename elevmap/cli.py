@@ -97,6 +97,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="information cap of paper_capped, points per cell and frame (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scene, noise and effects (default: 0)")
     p.add_argument("--size", default="424x240", help="depth mode WIDTHxHEIGHT (default 424x240)")
+    p.add_argument("--max-variance", type=float, default=None, metavar="M2",
+                   help="every mapper's variance ceiling [m^2] (default 1, elevation_mapping_cupy's; "
+                        "the map's own default is 0.04)")
     p.add_argument("--json", metavar="PATH", help="the report (required)")
     p.add_argument("--rrd", metavar="PATH", help="rerun recording: the maps side by side, error maps")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
@@ -321,7 +324,7 @@ def _cmd_simulate(args) -> int:
 def _cmd_compare(args) -> int:
     from pathlib import Path
 
-    from .compare import DEFAULT_CAP, format_table, json_ready, run_compare
+    from .compare import COMPARE_MAX_VARIANCE, DEFAULT_CAP, format_table, json_ready, run_compare
     from .fileio import write_json_atomic
 
     if not args.json:
@@ -338,7 +341,8 @@ def _cmd_compare(args) -> int:
         raise ValueError(f"--size must be WIDTHxHEIGHT, got {args.size!r}") from None
     report = run_compare(args.scene, args.frames, seed=args.seed, sim_effects=args.sim_effects,
                          mappers=args.mappers, cap=DEFAULT_CAP if args.cap is None else args.cap, width=width,
-                         height=height, rrd_path=args.rrd, show_progress=not args.no_progress)
+                         height=height, rrd_path=args.rrd, show_progress=not args.no_progress,
+                         max_variance=COMPARE_MAX_VARIANCE if args.max_variance is None else args.max_variance)
     report = json_ready(report)
     write_json_atomic(args.json, report)
     print(format_table(report))

@@ -12,7 +12,7 @@ import noise_model as nm
 from conftest import random_pose_cov, random_transform
 from elevmap import Mapper
 from elevmap.cli import main
-from elevmap.compare import MAPPERS, REPORT_KEYS, parse_effects, run_compare
+from elevmap.compare import COMPARE_MAX_VARIANCE, MAPPERS, REPORT_KEYS, most_confident, parse_effects, run_compare
 from noise_model.alternatives import anybotics_d435, constant, make_variance_model, quadratic
 from noise_model.effects import correlated_noise, depth_bias, gaussian_random_field, make_effect
 
@@ -246,6 +246,10 @@ def test_compare_cli_writes_the_report_table_and_recording(tmp_path, capsys):
     assert [e["name"] for e in report["sim_effects"]] == ["correlated_noise", "depth_bias"]
     assert report["sim_effects"][1]["params"]["scale"] == 1.01
     assert report["common"]["cells"] > 0 and set(report["common"]["mappers"]) == set(MAPPERS)
+    # equal coverage: as many cells as the mapper that knows fewest
+    assert report["matched"]["cells"] == min(m["known_cells"] for m in report["mappers"].values())
+    assert set(report["matched"]["mappers"]) == set(MAPPERS) and "matched:" in text
+    assert report["map"]["fusion"]["max_variance"] == COMPARE_MAX_VARIANCE
     assert rrd.stat().st_size > 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["compare.rrd", "report.json"]
     # no silent overwrite
@@ -286,6 +290,49 @@ def test_mapper_subset_and_the_cap(tmp_path):
     assert json.loads(text)["mappers"]["paper"]["edge_rmse_m"] is None
 
 
+def test_most_confident_by_hand():
+    v = np.array([[4.0, 1.0, 3.0],
+                  [1.0, 9.0, 0.5]])
+    known = np.array([[True, True, True],
+                      [True, False, True]])
+    assert most_confident(v, known, 0).sum() == 0
+    # 0.5, then the two 1.0 in flat order; 9.0 is unknown and never chosen
+    np.testing.assert_array_equal(most_confident(v, known, 2), [[False, True, False], [False, False, True]])
+    np.testing.assert_array_equal(most_confident(v, known, 3), [[False, True, False], [True, False, True]])
+    np.testing.assert_array_equal(most_confident(v, known, 5), known)
+    with pytest.raises(ValueError, match="n must be"):
+        most_confident(v, known, 6)
+    with pytest.raises(ValueError, match="differ in shape"):
+        most_confident(v, known[:, :2], 1)
+    with pytest.raises(ValueError, match="finite"):
+        most_confident(np.where(known, np.nan, 1.0), known, 1)
+
+
+def test_matched_scores_are_each_mappers_most_confident_cells_and_the_ceiling_is_set():
+    report = run_compare("stairs", 3, mappers="paper,quadratic", show_progress=False)
+    known = {n: m["known_cells"] for n, m in report["mappers"].items()}
+    n = report["matched"]["cells"]
+    assert n == min(known.values()) > 0
+    # the mapper that knows fewest cells is scored over all of them: its matched scores are its own
+    fewest = min(known, key=known.get)
+    own, matched = report["mappers"][fewest], report["matched"]["mappers"][fewest]
+    for k in ("rmse_m", "p95_abs_m", "nll", "coverage_1sigma", "coverage_2sigma"):
+        assert matched[k] == pytest.approx(own[k], rel=1e-12), k
+    assert report["map"]["fusion"]["max_variance"] == COMPARE_MAX_VARIANCE
+    from elevmap.fusion import FusionParams
+    from elevmap.pipeline import MappingConfig
+
+    own_ceiling = run_compare("stairs", 1, mappers="quadratic", max_variance=None, show_progress=False,
+                              config=MappingConfig(fusion=FusionParams(max_variance=0.02)))
+    assert own_ceiling["map"]["fusion"]["max_variance"] == 0.02
+    # a ceiling the quadratic model's far points exceed leaves it fewer cells
+    low = run_compare("stairs", 3, mappers="quadratic", max_variance=0.01, show_progress=False)
+    assert low["mappers"]["quadratic"]["known_cells"] < known["quadratic"]
+    for bad in (0.0, -1.0, float("inf"), "x"):
+        with pytest.raises(ValueError, match="max_variance"):
+            run_compare("stairs", 1, mappers="paper", max_variance=bad, show_progress=False)
+
+
 @pytest.mark.parametrize("args, message", [
     (["--scene", "moon"], "unknown scene"),
     (["--sim-effects", "fog"], "unknown effect"),
@@ -294,6 +341,7 @@ def test_mapper_subset_and_the_cap(tmp_path):
     (["--cap", "0.5"], "cap"),
     (["--frames", "0"], "--frames"),
     (["--size", "100x100"], "no default intrinsics"),
+    (["--max-variance", "-1"], "max_variance"),
 ])
 def test_bad_arguments_exit_2_with_a_message(tmp_path, capsys, args, message):
     assert main(["compare", "--json", str(tmp_path / "r.json"), "--frames", "1", "--no-progress"] + args) == 2
