@@ -9,6 +9,7 @@ depth_to_metres, deproject              depth image -> metres -> camera-frame po
 incidence_angles, depth_edges           theta per pixel; left/right depth-edge masks
 despeckle                               pixels no neighbour agrees with: their neighbours' median
 mixed_windows                           normal-estimation windows that hold more than one surface
+row_medians                             per pixel, the median depth of its agreeing row neighbours
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
@@ -36,7 +37,7 @@ from .d435 import D435, THETA_MAX_DEFAULT, THETA_QUADRATURE, SensorModel, axial_
 from . import alternatives, effects, kernels, scene, sim
 from .effects import EFFECTS, correlated_noise, depth_bias
 from .geometry import (deproject, depth_edges, depth_to_metres, default_block_px, incidence_angle_stats, incidence_angles,
-                       despeckle, mixed_windows)
+                       despeckle, mixed_windows, row_medians)
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 from .scene import (
     Box,
@@ -68,6 +69,7 @@ __all__ = [
     "depth_edges",
     "despeckle",
     "mixed_windows",
+    "row_medians",
     "default_block_px",
     "point_covariances",
     "to_map_frame",

@@ -24,6 +24,7 @@ __all__ = [
     "depth_edges",
     "despeckle",
     "mixed_windows",
+    "row_medians",
     "default_block_px",
     "plane_depths",
     "EDGE_JUMP_REL",
@@ -172,6 +173,9 @@ WINDOW_RADIUS_BLOCKS = 2
 #: Normal quantile of the significance level (1e-3) at which a window's blocks depart from its plane
 #: (:func:`mixed_windows`).
 MIXED_WINDOW_Z = 3.090
+#: Half-width [px] of the row neighbourhood of :func:`row_medians`: 11 pixels, whose median has
+#: about a third of one pixel's noise standard deviation (sqrt(pi / (2 * 11)) for Gaussian noise).
+ROW_MEDIAN_HALF_PX = 5
 
 
 def _block_theta_numpy(p, valid, b, min_points):
@@ -407,6 +411,57 @@ def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = E
         left[:, 1:] = valid[:, 1:] & (~valid[:, :-1] | (z[:, :-1] - z[:, 1:] > thr[:, 1:]))
         right[:, :-1] = valid[:, :-1] & (~valid[:, 1:] | (z[:, 1:] - z[:, :-1] > thr[:, :-1]))
     return left, right
+
+
+def row_medians(depth_m, half_px: int = ROW_MEDIAN_HALF_PX, jump_rel: float = EDGE_JUMP_REL,
+                jump_sigmas: float = EDGE_JUMP_SIGMAS, model: SensorModel = D435, theta=None) -> np.ndarray:
+    """Per pixel, the median depth of the pixels of its row within ``half_px`` that agree with it.
+
+    A neighbour agrees when the depth difference is within the depth-edge threshold of
+    :func:`depth_edges`, max(jump_rel z, jump_sigmas sqrt(2) sigma_z(z, theta)), z the nearer of the
+    two depths and theta the pixel's own (as :func:`despeckle`); the pixel itself always agrees.
+
+    Why: in a window that holds two surfaces (:func:`mixed_windows`) the window's plane describes
+    neither, so it cannot denoise a pixel's depth; a near surface seen at a grazing angle (a box top,
+    a stair's tread) is a strip a few rows tall and many columns wide, and the pixels of the pixel's
+    own row on its own surface average its noise down (the median of 11 independent Gaussian pixels:
+    0.38 of one pixel's standard deviation). :func:`noise_model.depth_to_map_points` bins the pixels of
+    mixed windows at the nearer of this depth and the plane's (see :class:`noise_model.MapPoints`).
+
+    Parameters
+    ----------
+    depth_m : array_like, shape (H, W)
+        Depth [m]; non-finite, zero or negative = invalid.
+    half_px : int
+        Row neighbours on each side [px], >= 0.
+    jump_rel, jump_sigmas : float
+        Threshold of agreement, as in :func:`depth_edges`.
+    model : SensorModel
+        For sigma_z.
+    theta : array_like, shape (H, W), optional
+        Incidence angles [rad]; 0 where not given.
+
+    Returns
+    -------
+    ndarray, shape (H, W), float64 [m]
+        NaN where the pixel is invalid.
+    """
+    z, valid, th, jr, js = _jump_inputs(depth_m, jump_rel, jump_sigmas, theta)
+    h = int(half_px)
+    if h != half_px or h < 0:
+        raise ValueError(f"half_px must be an integer >= 0, got {half_px!r}")
+    H, W = z.shape
+    zp = np.pad(z, ((0, 0), (h, h)), constant_values=np.nan)
+    nbrs = np.stack([zp[:, k:k + W] for k in range(2 * h + 1)])                 # (2h + 1, H, W)
+    with np.errstate(invalid="ignore"):
+        zq = np.where(nbrs < z, nbrs, z)                                        # the nearer depth
+        zq = np.where(np.isfinite(zq), zq, 1.0)
+        thr = _jump_threshold(zq, np.broadcast_to(th, zq.shape), jr, js, model)
+        agree = np.abs(nbrs - z) <= thr                                         # False where either is NaN
+    out = np.full(z.shape, np.nan)
+    if valid.any():
+        out[valid] = np.nanmedian(np.where(agree, nbrs, np.nan)[:, valid], axis=0)
+    return out
 
 
 def despeckle(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDGE_JUMP_SIGMAS,

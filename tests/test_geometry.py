@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from noise_model import D435, axial_sigma, deproject, depth_edges, depth_to_metres, incidence_angles, despeckle, mixed_windows
+from noise_model import D435, axial_sigma, deproject, depth_edges, depth_to_metres, incidence_angles, despeckle, mixed_windows, \
+    row_medians
 from noise_model.sim import render_planar_target
 
 K3 = np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]])   # a 3x3 image, centre pixel (1, 1)
@@ -118,6 +119,27 @@ def test_despeckle_by_hand():
     assert despeckle(lone)[1][1, 1] == 0 and despeckle(lone)[0][1, 1] == 1.0
     with pytest.raises(ValueError, match="theta"):
         despeckle(z, theta=np.zeros((2, 2)))
+
+
+def test_row_medians_by_hand_and_on_a_noisy_strip(rng):
+    z = np.array([[1.0, 1.01, 2.0, 1.02, 0.0, 1.03, 1.0]])
+    # 1.0: its agreeing neighbours within 2 columns are 1.0 and 1.01 (2.0 is 100 % away, beyond 5 %);
+    # 2.0 agrees with nobody; the invalid pixel stays NaN and takes no part
+    np.testing.assert_allclose(row_medians(z, 2), [[1.005, 1.01, 2.0, 1.02, np.nan, 1.02, 1.015]])
+    np.testing.assert_array_equal(row_medians(z, 0), np.where(z > 0, z, np.nan))     # each pixel alone
+    # at a grazing angle the paper's sigma_z (1 m at 1 m, 80 deg) widens the agreement: all four agree
+    theta = np.full(z.shape, np.radians(80.0))
+    assert row_medians(z, 2, theta=theta)[0, 2] == pytest.approx((1.01 + 1.02) / 2)
+    # a strip 4 rows tall: the median of 11 of its pixels has ~0.38 of one pixel's standard deviation
+    strip = 1.0 + rng.normal(0.0, 0.01, (4, 400))
+    zr = row_medians(strip)[:, 5:-5]
+    assert np.std(zr - 1.0) < 0.45 * np.std(strip - 1.0)
+    with pytest.raises(ValueError, match="half_px"):
+        row_medians(z, -1)
+    with pytest.raises(ValueError, match="half_px"):
+        row_medians(z, 1.5)
+    with pytest.raises(ValueError, match="theta"):
+        row_medians(z, theta=np.zeros((2, 2)))
 
 
 def test_mixed_windows_on_one_surface_and_across_a_step(rng):
