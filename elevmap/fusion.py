@@ -99,7 +99,10 @@ class FusionParams:
     mahalanobis_threshold : float
         Gate on |z - h| / sqrt(sigma^2 + sigma_p^2) [-].
     min_variance, max_variance : float
-        Clamp of the cell variance [m^2]; above ``max_variance`` a cell becomes unknown. The floor,
+        Clamp of the cell variance [m^2]; above ``max_variance`` a cell becomes unknown: 0.04 (sigma
+        20 cm) by default, a consumer's "no height rather than one that uncertain" (``elevmap compare``
+        runs every mapper with 1, elevation_mapping_cupy's, so that the ceiling does not decide which
+        cells each noise model is scored on; ANYbotics' code uses 9e-4). The floor,
         (3 mm)^2 as ANYbotics' elevation_mapping, is what a D435 can say about the height at a 4 cm
         cell's centre however many points it fuses (1 mm depth units, calibration, the terrain
         inside the cell); without it a cell of precise near-range points claims 0.2 mm (measured
