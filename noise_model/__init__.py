@@ -10,6 +10,7 @@ incidence_angles, depth_edges           theta per pixel; left/right depth-edge m
 despeckle                               pixels no neighbour agrees with: their neighbours' median
 mixed_windows                           normal-estimation windows that hold more than one surface
 row_medians                             per pixel, the median depth of its agreeing row neighbours
+surface_depths                          the median of agreeing row medians over 5 rows (binning)
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
@@ -37,7 +38,7 @@ from .d435 import D435, THETA_MAX_DEFAULT, THETA_QUADRATURE, SensorModel, axial_
 from . import alternatives, effects, kernels, scene, sim
 from .effects import EFFECTS, correlated_noise, depth_bias
 from .geometry import (deproject, depth_edges, depth_to_metres, default_block_px, incidence_angle_stats, incidence_angles,
-                       despeckle, mixed_windows, row_medians)
+                       despeckle, mixed_windows, row_medians, surface_depths)
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 from .scene import (
     Box,
@@ -70,6 +71,7 @@ __all__ = [
     "despeckle",
     "mixed_windows",
     "row_medians",
+    "surface_depths",
     "default_block_px",
     "point_covariances",
     "to_map_frame",

@@ -30,6 +30,7 @@ from .geometry import (
     MIXED_WINDOW_Z,
     NORMAL_MIN_POINTS,
     ROW_MEDIAN_HALF_PX,
+    SURFACE_HALF_ROWS,
     WINDOW_RADIUS_BLOCKS,
     _DEGENERATE_REL,
     _centred_moments,
@@ -41,7 +42,7 @@ from .geometry import (
     mixed_windows,
     plane_depths,
     despeckle,
-    row_medians,
+    surface_depths,
 )
 from .d435 import THETA_GRID, THETA_QUADRATURE, _axial_sigma_unchecked
 
@@ -126,6 +127,7 @@ class Workspace:
         self.height_var = np.empty(n)
         self.horizontal_cov = np.empty((3, n))
         self.pixel = np.empty(n, dtype=np.int64)
+        self.row_median = np.empty(self.shape)  # per pixel of a mixed window: its row median
 
 
 def resolve_threads(nthreads) -> int:
@@ -232,18 +234,9 @@ def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
 
 
 @njit(**_JIT)
-def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
-    """The median of the depths of row zp (padded: zp[c + 1] is column c) within half columns of u that
-    agree with z, z's own included (noise_model.row_medians); buf holds at least 2 half + 1 values."""
-    W = zp.shape[0] - 2
-    k = 0
-    for c in range(max(0, u - half), min(W, u + half + 1)):
-        zn = zp[c + 1]
-        if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
-            buf[k] = zn
-            k += 1
-    # the middle one or two by rank (ties broken by position): k^2 branch-free comparisons cost less
-    # than the mispredicted branches of a sort
+def _rank_median(buf, k):
+    """The median of buf[:k] (k >= 1): the middle one or two by rank, ties broken by position; k^2
+    branch-free comparisons cost less than the mispredicted branches of a sort at these sizes."""
     lo = (k - 1) // 2
     hi = k // 2
     a = 0.0
@@ -256,6 +249,34 @@ def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
         a = x if r == lo else a
         b = x if r == hi else b
     return (a + b) / 2.0
+
+
+@njit(**_JIT)
+def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
+    """The median of the depths of row zp (padded: zp[c + 1] is column c) within half columns of u that
+    agree with z, z's own included (noise_model.row_medians); buf holds at least 2 half + 1 values."""
+    W = zp.shape[0] - 2
+    k = 0
+    for c in range(max(0, u - half), min(W, u + half + 1)):
+        zn = zp[c + 1]
+        if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+            buf[k] = zn
+            k += 1
+    return _rank_median(buf, k)
+
+
+@njit(**_JIT)
+def _column_median(R, v, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
+    """The median of R[v - half .. v + half, u] (NaN: none) that agree with z (noise_model.surface_depths);
+    R[v, u] is a median of depths that agree with z, so at least it agrees."""
+    H = R.shape[0]
+    k = 0
+    for r in range(max(0, v - half), min(H, v + half + 1)):
+        zn = R[r, u]
+        if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+            buf[k] = zn
+            k += 1
+    return _rank_median(buf, k) if k > 0 else z
 
 
 @njit(**_JIT)
@@ -326,8 +347,8 @@ def _mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_re
 
 @njit(parallel=True, **_JIT)
 def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params, zrange, block, radius,
-                         min_points, degenerate_rel, bin_at_plane, mix_z, row_half, hx, hw, gx, gw, pts, hvar, hcov,
-                         pix):
+                         min_points, degenerate_rel, bin_at_plane, mix_z, row_half, rows_half, hx, hw, gx, gw, rowmed,
+                         pts, hvar, hcov, pix):
     """Fill columns 0..N-1 of pts (3, n), hvar (n,), hcov (3, n), pix (n,) with the frame's valid
     pixels in row-major order; return N.
 
@@ -462,6 +483,26 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 gamma_px[by, u] = pg
                 mixed_px[by, u] = 1.0 if mixed else 0.0
 
+    # pass 2b: in windows of two surfaces, each pixel's row median (noise_model.row_medians) into
+    # rowmed (H, W); NaN elsewhere. Pass 3 takes their median down the column (surface_depths).
+    if bin_at_plane:
+        for v in prange(H):
+            by = v // b
+            zr_row = np.empty(W + 2)
+            zr_row[0] = np.nan
+            zr_row[W + 1] = np.nan
+            rb = np.empty(2 * row_half + 1)
+            for u in range(W):
+                z = depth[v, u] * scale
+                zr_row[u + 1] = z if (z >= zmin) & (z <= zmax) else np.nan
+            for u in range(W):
+                z = zr_row[u + 1]
+                rm = np.nan
+                if (z > 0.0) & (mixed_px[by, u] > 0.0):
+                    rm = _row_median(zr_row, u, z, gain_px[by, u], row_half, jump_rel, jump_sig * math.sqrt(2.0),
+                                     c0, c1, c2, rb)
+                rowmed[v, u] = rm
+
     # output offsets (exclusive prefix sum of the row counts)
     offsets = np.empty(H + 1, dtype=np.int64)
     offsets[0] = 0
@@ -507,9 +548,9 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
         medrow = np.empty(W)
         cmed = np.empty(W)
         nbuf = np.empty(8)
-        rowmed = np.empty(W)
+        colmed = np.empty(W)
         crow = np.empty(W)
-        rbuf = np.empty(2 * row_half + 1)
+        rbuf = np.empty(2 * rows_half + 1)
         # -inf beyond the image: not NaN (invalid) and never farther by more than thr, so the image
         # border is no edge
         zp[0] = -np.inf
@@ -545,8 +586,9 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 medrow[u] = md
                 rm = nan
                 if (z > 0.0) & (mixed_px[by, u] > 0.0) & bin_at_plane:
-                    rm = _row_median(zp, u, z, gain_px[by, u], row_half, jump_rel, thr_sig, c0, c1, c2, rbuf)
-                rowmed[u] = rm
+                    rm = _column_median(rowmed, v, u, z, gain_px[by, u], rows_half, jump_rel, thr_sig, c0, c1, c2,
+                                        rbuf)
+                colmed[u] = rm
             k = 0
             for u in range(W):
                 z = zp[u + 1]
@@ -554,7 +596,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 cz[k] = z
                 cvx[k] = vx[u]
                 cmed[k] = medrow[u]
-                crow[k] = rowmed[u]
+                crow[k] = colmed[u]
                 k += 0 if np.isnan(z) else 1
 
             # unsigned output index: no wraparound select, so the stores below are contiguous
@@ -701,8 +743,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         N = _depth_to_map_kernel(d, scale, intr, T, np.zeros((6, 6)) if P is None else P, P is not None,
                                  model.params_array(), edge, np.array([zmin, zmax]), b, WINDOW_RADIUS_BLOCKS,
                                  NORMAL_MIN_POINTS,
-                                 _DEGENERATE_REL, bool(bin_at_plane), MIXED_WINDOW_Z, ROW_MEDIAN_HALF_PX, _GH_X, _GH_W,
-                                 _GRID_X, _GRID_W,
+                                 _DEGENERATE_REL, bool(bin_at_plane), MIXED_WINDOW_Z, ROW_MEDIAN_HALF_PX,
+                                 SURFACE_HALF_ROWS, _GH_X, _GH_W, _GRID_X, _GRID_W, ws.row_median,
                                  ws.points_map, ws.height_var,
                                  ws.horizontal_cov,
                                  ws.pixel)
@@ -731,7 +773,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     z_fit = plane_depths(pts, block_px=b)
     left, right = depth_edges(z, model=model, theta=theta)
     mixed = mixed_windows(pts, block_px=b)
-    z_row = row_medians(z, model=model, theta=theta)
+    z_row = surface_depths(z, mixed, model=model, theta=theta)
     # a speckle's depth is its neighbours' median, with its distance from them as a variance floor;
     # the planes, angles, edges and row medians above are those of the measured depths
     z_measured = z

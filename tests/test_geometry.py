@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from noise_model import D435, axial_sigma, deproject, depth_edges, depth_to_metres, incidence_angles, despeckle, mixed_windows, \
-    row_medians
+    row_medians, surface_depths
 from noise_model.sim import render_planar_target
 
 K3 = np.array([[2.0, 0.0, 1.0], [0.0, 2.0, 1.0], [0.0, 0.0, 1.0]])   # a 3x3 image, centre pixel (1, 1)
@@ -140,6 +140,35 @@ def test_row_medians_by_hand_and_on_a_noisy_strip(rng):
         row_medians(z, 1.5)
     with pytest.raises(ValueError, match="theta"):
         row_medians(z, theta=np.zeros((2, 2)))
+
+
+def test_surface_depths_by_hand_and_on_a_noisy_strip(rng):
+    # three rows of one column-constant surface at 1.0, 1.02, 1.01 and a far row at 3 m
+    z = np.array([[1.00, 1.00, 1.00],
+                  [1.02, 1.02, 1.02],
+                  [3.00, 3.00, 3.00],
+                  [1.01, 1.01, 1.01]])
+    mask = np.ones(z.shape, dtype=bool)
+    out = surface_depths(z, mask, half_px=1, half_rows=1)
+    # row 1: the row medians of rows 0 and 1 agree with 1.02 (within 5 %), row 2's 3.0 does not
+    assert out[1, 0] == pytest.approx(1.01)
+    assert out[2, 1] == 3.0                                         # nothing near 3 m agrees
+    assert out[3, 2] == pytest.approx(1.01)                         # row 2 disagrees, row 4 is beyond
+    # only the masked pixels are computed, and only their row medians take part
+    m2 = mask.copy()
+    m2[0] = False
+    out2 = surface_depths(z, m2, half_px=1, half_rows=1)
+    assert np.all(np.isnan(out2[0])) and out2[1, 0] == pytest.approx(1.02)
+    # a strip 5 rows tall: the median of 5 rows' medians of 11 has ~0.21 of one pixel's noise
+    strip = 1.0 + rng.normal(0.0, 0.01, (5, 400))
+    zs = surface_depths(strip, np.ones(strip.shape, dtype=bool))[2, 5:-5]
+    assert np.std(zs - 1.0) < 0.3 * 0.01
+    with pytest.raises(ValueError, match="mask"):
+        surface_depths(z, mask[:2])
+    with pytest.raises(ValueError, match="mask"):
+        surface_depths(z, mask.astype(int))
+    with pytest.raises(ValueError, match="half_rows"):
+        surface_depths(z, mask, half_rows=-1)
 
 
 def test_mixed_windows_on_one_surface_and_across_a_step(rng):
