@@ -428,8 +428,9 @@ def row_medians(depth_m, half_px: int = ROW_MEDIAN_HALF_PX, jump_rel: float = ED
     neither, so it cannot denoise a pixel's depth; a near surface seen at a grazing angle (a box top,
     a stair's tread) is a strip a few rows tall and many columns wide, and the pixels of the pixel's
     own row on its own surface average its noise down (the median of 11 independent Gaussian pixels:
-    0.38 of one pixel's standard deviation). :func:`noise_model.depth_to_map_points` bins the pixels of
-    mixed windows at the nearer of this depth and the plane's (see :class:`noise_model.MapPoints`).
+    0.38 of one pixel's standard deviation). :func:`surface_depths` takes the median of these down
+    the column, and :func:`noise_model.depth_to_map_points` bins the pixels of mixed windows at the
+    nearer of that depth and the plane's (see :class:`noise_model.MapPoints`).
 
     Parameters
     ----------

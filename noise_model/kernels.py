@@ -83,15 +83,16 @@ class MapPoints(NamedTuple):
         error. Measured on the simulated stairs and boxes walks (``elevmap compare``): 2-sigma
         coverage 0.90 -> 0.92 and 0.76 -> 0.81. In a window that holds more than one surface
         (:func:`noise_model.mixed_windows`) the point is binned at the nearer of the plane's depth
-        and the median depth of its row's pixels on its own surface (:func:`noise_model.row_medians`;
-        a speckle: its replaced depth): a plane fitted across an edge lies beyond the near surface (a
-        box top seen at a grazing angle is a strip a few pixels tall, its window mostly the floor
-        behind it; a riser and its tread), and binning there carries the near surface's height into
-        the cells behind the edge, which its own occlusion leaves sparsely seen; points binned a
-        little too near land on cells the camera sees densely, where they are outvoted. Measured:
-        RMSE 61.7 -> 37.3 mm (stairs), 70.7 -> 59.7 mm (boxes) with the pixel's own depth in place of
-        the row median; the row median, whose noise is ~0.4 of a pixel's, then took the paper
-        mapper's RMSE from 36.7 to 30.9 mm (stairs), 50.7 to 39.7 mm (slope), 59.3 to 56.7 mm (boxes).
+        and a denoised depth of its own surface, the median of the agreeing row medians of 5 rows
+        (:func:`noise_model.surface_depths`; a speckle: its replaced depth): a plane fitted across an
+        edge lies beyond the near surface (a box top seen at a grazing angle is a strip a few pixels
+        tall, its window mostly the floor behind it; a riser and its tread), and binning there carries
+        the near surface's height into the cells behind the edge, which its own occlusion leaves
+        sparsely seen; points binned a little too near land on cells the camera sees densely, where
+        they are outvoted. Measured: RMSE 61.7 -> 37.3 mm (stairs), 70.7 -> 59.7 mm (boxes) with the
+        pixel's own depth in place of the surface median; the surface median, whose noise is ~0.2 of
+        a pixel's, then took the paper mapper's RMSE from 36.7 to 28.9 mm (stairs), 50.7 to 32.5 mm
+        (slope), 59.3 to 55.4 mm (boxes).
         Only there: on one surface binning nearer would take the pixels whose noise is negative
         nearer, with their too-high heights, and leave the others (a flat floor read +6 mm beside
         the walk, -3 to -6 mm beyond 1 m; 2-sigma coverage of the cells within 1 m of the walk 0.86 ->
