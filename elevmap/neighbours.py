@@ -17,9 +17,10 @@ c included) with weights w_j = 1 / P_j, the DerSimonian-Laird random-effects est
 (k the number of known cells in the window; 0 when k < 2) is the variance of the true heights about
 the window's mean beyond the cells' own variances. It is stored as ``neighbour_spread`` and the cell's
 variance becomes P + max(spread, neighbour_spread): the height at the centre of a cell in a window
-whose cells disagree is uncertain by that disagreement. The fusion works on the variance without it
-(the gate and the prior, :func:`elevmap.fusion._nbr_excess`; the visibility clean-up too), so the
-heights are the same with or without it; only the variances that consumers read change.
+whose cells disagree is uncertain by that disagreement. The fusion's gate and prior work on the
+variance without it (:func:`elevmap.fusion._nbr_excess`; the visibility clean-up too); a new point's
+weight 1 / (sigma^2 + tau^2) takes tau^2 = max(spread, neighbour_spread), so the heights depend on it
+through the weights of later points only.
 
 The window sums are separable (along the rows, then down the columns); heights enter them relative to
 the mean height of the map's known cells (sampled every 8th row and column), so that the sums stay well conditioned however high the map
