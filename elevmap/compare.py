@@ -175,13 +175,9 @@ def _replace(params, **changes):
 
 
 def _check_max_variance(value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"max_variance must be a number [m^2], got {value!r}") from None
-    if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"max_variance must be a finite variance > 0 [m^2], got {value!r}")
-    return v
+    from noise_model.checks import check_positive_scalar
+
+    return check_positive_scalar(value, "max_variance", unit=" m^2")
 
 
 def _check_cap(cap) -> float:

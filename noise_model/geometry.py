@@ -438,12 +438,8 @@ def row_medians(depth_m, half_px: int = ROW_MEDIAN_HALF_PX, jump_rel: float = ED
         Depth [m]; non-finite, zero or negative = invalid.
     half_px : int
         Row neighbours on each side [px], >= 0.
-    jump_rel, jump_sigmas : float
-        Threshold of agreement, as in :func:`depth_edges`.
-    model : SensorModel
-        For sigma_z.
-    theta : array_like, shape (H, W), optional
-        Incidence angles [rad]; 0 where not given.
+    jump_rel, jump_sigmas, model, theta
+        The agreement of two pixels, as in :func:`despeckle`.
 
     Returns
     -------
@@ -487,14 +483,10 @@ def surface_depths(depth_m, mask, half_px: int = ROW_MEDIAN_HALF_PX, half_rows: 
         Depth [m]; non-finite, zero or negative = invalid.
     mask : array_like of bool, shape (H, W)
         The pixels to compute (and whose row medians take part), e.g. :func:`mixed_windows`.
-    half_px, half_rows : int
-        Row neighbours on each side [px]; rows above and below [rows]; both >= 0.
-    jump_rel, jump_sigmas : float
-        Threshold of agreement, as in :func:`depth_edges`.
-    model : SensorModel
-        For sigma_z.
-    theta : array_like, shape (H, W), optional
-        Incidence angles [rad]; 0 where not given.
+    half_rows : int
+        Rows above and below [rows], >= 0.
+    half_px, jump_rel, jump_sigmas, model, theta
+        As in :func:`row_medians`.
 
     Returns
     -------
