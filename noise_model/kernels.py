@@ -267,13 +267,14 @@ def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
 
 
 @njit(**_JIT)
-def _column_median(R, v, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
-    """The median of R[v - half .. v + half, u] (NaN: none) that agree with z (noise_model.surface_depths);
-    R[v, u] is a median of depths that agree with z, so at least it agrees."""
+def _column_median(R, mixed_px, b, v, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
+    """The median of R[v - half .. v + half, u] that agree with z (noise_model.surface_depths), R read only
+    where mixed_px (per block row b) marks the pixel's window mixed, NaN there meaning invalid; R[v, u] is
+    a median of depths that agree with z, so at least it agrees."""
     H = R.shape[0]
     k = 0
     for r in range(max(0, v - half), min(H, v + half + 1)):
-        zn = R[r, u]
+        zn = R[r, u] if mixed_px[r // b, u] > 0.0 else np.nan
         if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
             buf[k] = zn
             k += 1
@@ -484,11 +485,17 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 gamma_px[by, u] = pg
                 mixed_px[by, u] = 1.0 if mixed else 0.0
 
-    # pass 2b: in windows of two surfaces, each pixel's row median (noise_model.row_medians) into
-    # rowmed (H, W); NaN elsewhere. Pass 3 takes their median down the column (surface_depths).
+    # pass 2b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians)
+    # into rowmed (H, W), NaN for invalid ones; pixels outside mixed windows are neither computed nor
+    # written (pass 3 reads rowmed only where mixed_px says so), and rows without any are skipped.
     if bin_at_plane:
         for v in prange(H):
             by = v // b
+            any_mixed = False
+            for u in range(W):
+                any_mixed = any_mixed | (mixed_px[by, u] > 0.0)
+            if not any_mixed:
+                continue
             zr_row = np.empty(W + 2)
             zr_row[0] = np.nan
             zr_row[W + 1] = np.nan
@@ -497,12 +504,13 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 z = depth[v, u] * scale
                 zr_row[u + 1] = z if (z >= zmin) & (z <= zmax) else np.nan
             for u in range(W):
-                z = zr_row[u + 1]
-                rm = np.nan
-                if (z > 0.0) & (mixed_px[by, u] > 0.0):
-                    rm = _row_median(zr_row, u, z, gain_px[by, u], row_half, jump_rel, jump_sig * math.sqrt(2.0),
-                                     c0, c1, c2, rb)
-                rowmed[v, u] = rm
+                if mixed_px[by, u] > 0.0:
+                    z = zr_row[u + 1]
+                    rm = np.nan
+                    if z > 0.0:
+                        rm = _row_median(zr_row, u, z, gain_px[by, u], row_half, jump_rel, jump_sig * math.sqrt(2.0),
+                                         c0, c1, c2, rb)
+                    rowmed[v, u] = rm
 
     # output offsets (exclusive prefix sum of the row counts)
     offsets = np.empty(H + 1, dtype=np.int64)
@@ -587,8 +595,8 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 medrow[u] = md
                 rm = nan
                 if (z > 0.0) & (mixed_px[by, u] > 0.0) & bin_at_plane:
-                    rm = _column_median(rowmed, v, u, z, gain_px[by, u], rows_half, jump_rel, thr_sig, c0, c1, c2,
-                                        rbuf)
+                    rm = _column_median(rowmed, mixed_px, b, v, u, z, gain_px[by, u], rows_half, jump_rel, thr_sig,
+                                        c0, c1, c2, rbuf)
                 colmed[u] = rm
             k = 0
             for u in range(W):
