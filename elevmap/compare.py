@@ -595,7 +595,9 @@ def most_confident(variance, known, n: int) -> np.ndarray:
     ndarray of bool, shape (H, W)
     """
     variance = np.asarray(variance, dtype=np.float64)
-    known = np.asarray(known, dtype=bool)
+    known = np.asarray(known)
+    if known.dtype != bool:
+        raise ValueError(f"known must be a boolean mask, got dtype {known.dtype}")
     if variance.shape != known.shape:
         raise ValueError(f"variance {variance.shape} and known {known.shape} differ in shape")
     idx = np.flatnonzero(known)
@@ -659,7 +661,8 @@ def format_table(report: dict) -> str:
     out = [head, line(cols), line(units)] + [line(r) for r in rows]
     out.append(f"common: the {report.get('common', {}).get('cells', 0)} cells known to every mapper; "
                f"matched: each mapper's {report.get('matched', {}).get('cells', 0)} most confident cells "
-               "(the fewest any mapper knows); ideal coverage 68.3 % (1 sigma) and 95.4 % (2 sigma); NLL in nats (lower is better)")
+               "(the fewest any mapper knows); ideal coverage 68.3 % (1 sigma) and 95.4 % (2 sigma); "
+               "NLL in nats (lower is better)")
     return "\n".join(out)
 
 

@@ -153,7 +153,8 @@ class FusionParams:
         Half-width [cells] of the neighbourhood whose disagreement is added to a cell's variance
         (``neighbour_spread``, see :mod:`elevmap.neighbours`); 0: off. 4 (a 9 x 9 window, 0.36 m at
         4 cm) by default. The heights depend on it only through the weights of later points (the
-        module docstring). Measured on the simulated walks (``elevmap compare``, 60 frames, seed 0, paper mapper; stairs / boxes / slope / rough):
+        module docstring). Measured on the simulated walks (``elevmap compare``, 60 frames, seed 0,
+        paper mapper; stairs / boxes / slope / rough):
         mean NLL 68.8 / 3.6 / 128 / -2.7 with 0, 32.6 / 0.0 / - / - with 2, 16.5 / -1.0 / 6.4 / -2.7 with
         4; 2-sigma coverage 0.907 / 0.857 / 0.854 / 0.970 with 0 -> 0.950 / 0.914 / 0.913 / 0.980 with 4
         (1-sigma 0.77 / 0.72 / 0.73 / 0.81 -> 0.81 / 0.78 / 0.79 / 0.84); measured when it was added,

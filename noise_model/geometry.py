@@ -586,8 +586,9 @@ def mixed_windows(points_cam, block_px: int | None = None, min_points: int = NOR
     [(RSS - sum n_j r_j^2) / sum (n_j - 1)] follows an F distribution with B - 3 and sum (n_j - 1)
     degrees of freedom (B blocks with a valid pixel, RSS the window's residual sum of squares). Where
     blocks lie on another surface (a box top's strip in a window of floor, a riser and its tread, a
-    step) their means depart together and F is large. Mixed: F above its 1 - 1e-3 quantile (``z``, Wilson-Hilferty for the numerator's
-    chi-square; the denominator's degrees of freedom are in the hundreds). Also mixed: windows without
+    step) their means depart together and F is large. Mixed: F above its 1 - 1e-3 quantile (``z``,
+    Wilson-Hilferty for the numerator's chi-square; the denominator's degrees of freedom are in the
+    hundreds). Also mixed: windows without
     a plane or with at most 3 blocks (nothing to test). Noise-free windows are mixed when their blocks
     depart from the plane beyond the rounding of the moments.
 

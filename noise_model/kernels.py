@@ -1,10 +1,12 @@
 """Depth image -> map-frame points with height variance and horizontal covariance, in one numba pass.
 
 :func:`depth_to_map_points` is the hot path of the mapper: per frame it deprojects every valid pixel,
-estimates the incidence angle from block-wise inverse-depth plane fits, finds depth edges, places
-speckles at their neighbours' depth (:func:`noise_model.despeckle`), builds the D435 covariance of :func:`noise_model.point_covariances`, rotates it into the map frame and adds
-the first-order pose term of :func:`noise_model.to_map_frame`. :func:`depth_to_map_points_reference`
-computes the same thing by composing those public NumPy functions, and the tests hold the two equal.
+estimates the incidence angle from block-wise inverse-depth plane fits, finds depth edges and the
+windows that hold two surfaces, places speckles at their neighbours' depth
+(:func:`noise_model.despeckle`), builds the D435 covariance of :func:`noise_model.point_covariances`,
+rotates it into the map frame and adds the first-order pose term of :func:`noise_model.to_map_frame`.
+:func:`depth_to_map_points_reference` computes the same thing by composing those public NumPy
+functions, and the tests hold the two equal.
 
 numba flags: never ``fastmath=True`` (it folds ``isnan`` to False); the flag set below keeps NaN/inf
 semantics and leaves out ``arcp`` (it changes binning at cell borders). Work is split over image rows
@@ -301,16 +303,7 @@ def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0,
                     return np.nan
                 buf[k] = zn
                 k += 1
-    if k == 0:
-        return np.nan
-    for i in range(1, k):                    # insertion sort of at most 8 depths
-        x = buf[i]
-        j = i - 1
-        while j >= 0 and buf[j] > x:
-            buf[j + 1] = buf[j]
-            j -= 1
-        buf[j + 1] = x
-    return buf[k // 2] if k % 2 == 1 else (buf[k // 2 - 1] + buf[k // 2]) / 2.0
+    return _rank_median(buf, k) if k > 0 else np.nan
 
 
 @njit(**_JIT)
@@ -365,6 +358,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     c0, c1, c2, ct, theta_max, s_left, s_right = (
         params[0], params[1], params[2], params[3], params[4], params[5], params[6])
     jump_rel, jump_sig, noise_sigmas = edge_params[0], edge_params[1], edge_params[2]
+    thr_sig = jump_sig * math.sqrt(2.0)      # noise part of the depth-edge threshold, per sigma_z
     zmin, zmax = zrange[0], zrange[1]
     b = block
     nby = (H + b - 1) // b
@@ -508,8 +502,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                     z = zr_row[u + 1]
                     rm = np.nan
                     if z > 0.0:
-                        rm = _row_median(zr_row, u, z, gain_px[by, u], row_half, jump_rel, jump_sig * math.sqrt(2.0),
-                                         c0, c1, c2, rb)
+                        rm = _row_median(zr_row, u, z, gain_px[by, u], row_half, jump_rel, thr_sig, c0, c1, c2, rb)
                     rowmed[v, u] = rm
 
     # output offsets (exclusive prefix sum of the row counts)
@@ -523,7 +516,6 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     t0, t1, t2 = T[0, 3], T[1, 3], T[2, 3]
     pix_var_x = 1.0 / (12.0 * fx * fx)
     pix_var_y = 1.0 / (12.0 * fy * fy)
-    thr_sig = jump_sig * math.sqrt(2.0)
     sL2 = s_left * s_left
     sR2 = s_right * s_right
     sLR2 = max(sL2, sR2)
@@ -582,7 +574,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 vx[u] = (sLR2 if right else sL2) if left else var_x
             # speckles: no neighbour agrees (noise_model.despeckle); the row neighbours settle
             # almost every pixel, the other six are read only when both disagree. And in windows of
-            # two surfaces the median depth of the agreeing row neighbours (binning)
+            # two surfaces the median of the agreeing row medians down the column (surface_depths)
             for u in range(W):
                 z = zp[u + 1]
                 md = nan
@@ -664,8 +656,8 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                             - q1 * (P15 - q2 * P35 + q0 * P55))
                 i = k0 + j
                 # x, y where the ray meets the local plane (the cell the pixel looks at); in a window of
-                # two surfaces at the nearer of the plane and the median of the pixel's row on its own
-                # surface (a speckle: its replaced depth); z from the measured depth (see MapPoints)
+                # two surfaces at the nearer of the plane and the surface median (a speckle: its
+                # replaced depth); z from the measured depth (see MapPoints)
                 zr = z if sp else crow[j]
                 zb = (min(zf, zr) if mixed_px[by, u] > 0.0 else zs) if bin_at_plane else z
                 pts[0, i] = zb * a0 + t0
@@ -731,8 +723,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         workspace's next use. Without one, fresh arrays are returned.
     bin_at_plane : bool
         Place each point's x, y where its ray meets the local plane, or, in a window holding more than
-        one surface, at its measured depth where that is nearer (see :class:`MapPoints`); False: at
-        its measured depth.
+        one surface, at the nearer of that and its surface median (:func:`noise_model.surface_depths`;
+        see :class:`MapPoints`); False: at its measured depth.
 
     Returns
     -------
@@ -784,7 +776,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     mixed = mixed_windows(pts, block_px=b)
     z_row = surface_depths(z, mixed, model=model, theta=theta)
     # a speckle's depth is its neighbours' median, with its distance from them as a variance floor;
-    # the planes, angles, edges and row medians above are those of the measured depths
+    # the planes, angles, edges and surface medians above are those of the measured depths
     z_measured = z
     z, dev2 = despeckle(z, model=model, theta=theta)
     with np.errstate(invalid="ignore"):
@@ -809,7 +801,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
                             min_axial_var=dev2.ravel()[pix])
     cov_map = to_map_frame(cov, p, T, P)
     points_map = p @ T[:3, :3].T + T[:3, 3]
-    if bin_at_plane:          # x, y at the local plane (in a mixed window: or the row median where nearer)
+    if bin_at_plane:          # x, y at the local plane (in a mixed window: or the surface median where nearer)
         zn = z_noise.ravel()[pix]
         zb = np.where(mixed.ravel()[pix], np.minimum(zf.ravel()[pix], z_row.ravel()[pix]), zn)
         pb = p * (zb / p[:, 2])[:, None]

@@ -306,6 +306,8 @@ def test_most_confident_by_hand():
         most_confident(v, known[:, :2], 1)
     with pytest.raises(ValueError, match="finite"):
         most_confident(np.where(known, np.nan, 1.0), known, 1)
+    with pytest.raises(ValueError, match="boolean"):
+        most_confident(v, known.astype(int), 1)
 
 
 def test_matched_scores_are_each_mappers_most_confident_cells_and_the_ceiling_is_set():
