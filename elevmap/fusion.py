@@ -34,7 +34,13 @@ Change: a single outlier (or a few) is ignored. When a cell's rejected points ar
 ``change_min_points`` and outnumber its accepted ones, the terrain has changed (a box put down, a
 step): the prior's variance is inflated by the squared distance to the rejected points' mean, so that
 the next frame's points pass the gate and pull the cell over; when the inflated variance exceeds
-``max_variance``, the cell is re-initialised from the rejected points at once.
+``max_variance``, the cell is re-initialised from the rejected points at once. The inflation comes
+after this frame's accepted points are fused with the prior as it was: inflating first let the few
+accepted points of a frame that looked like a change pull the cell to them at once (a floor cell of
+1616 points at the lower image border, reached in its last frame by 14 points 4-9 cm too near, 3 of
+them inside the gate, read +56 mm). Measured (``elevmap compare``, 60 frames, seed 0, paper mapper;
+stairs / boxes / slope / rough): RMSE 26.7 -> 26.4 / 54.6 -> 54.8 / 29.3 -> 29.2 / 18.8 -> 18.6 mm,
+2-sigma 0.956 -> 0.959 / 0.926 -> 0.928, NLL -2.89 -> -2.90 / -2.33 -> -2.34.
 
 Information cap (correlated pixels): with ``max_points_per_frame = n_eff`` a frame adds at most the
 information of n_eff average points to a cell (its weights are scaled by n_eff / n when n > n_eff),
@@ -335,10 +341,11 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     reset = False
     updated = False
     changed = known and Nr >= change_min and Nr > N
+    inflation = 0.0
     if changed:
         mr = WZr / Wr
-        v = v + (mr - h) * (mr - h)
-        if v > max_var:
+        inflation = (mr - h) * (mr - h)      # added after this frame's accepted points are fused
+        if v + inflation > max_var:
             reset = True
             h = mr
             v = 1.0 / Wr
@@ -384,6 +391,8 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
         data[HVAR_XY, bi, bj] = hxy
         data[TIME, bi, bj] = stamp
         updated = True
+    if changed and not reset:
+        v += inflation
     if not updated and not changed:       # only a few rejected points: the cell stays as it was
         return
     v = max(v, min_var)
@@ -596,8 +605,8 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
                      np.maximum(v, tau2_old * np.maximum(N + Nr, 1.0) / np.where(npo > 0, npo, 1.0)), v)
         change = seen & known & (Nr >= change_min) & (Nr > N)
         mr = WZr / Wr
-        v = np.where(change, v + (mr - h) ** 2, v)
-        reset = change & (v > max_var)
+        inflation = np.where(change, (mr - h) ** 2, 0.0)     # added after the fusion (see _merge_cell)
+        reset = change & (v + inflation > max_var)
         fuse = seen & ~reset & (N > 0)
         fuse_known = fuse & known
         fuse_new = fuse & ~known
@@ -605,6 +614,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         h_post = np.where(fuse_known, (h / v + WZ) * v_post, np.where(fuse_new, WZ / W, h))
         h_post = np.where(reset, mr, h_post)
         v_post = np.where(reset, 1.0 / Wr, v_post)
+        v_post = np.where(change & ~reset, v_post + inflation, v_post)
         # spread statistics (see _spread_update)
         mb = WZ0 / W0
         qb = np.maximum(WZZ0 - WZ0 * mb, 0.0)

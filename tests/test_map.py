@@ -112,6 +112,27 @@ def test_a_box_put_down_appears_within_five_frames(step):
     assert m.layer("min_height")[1, 1] > step - 0.05 or step < 0.05
 
 
+@pytest.mark.parametrize("impl", ["numba", "numpy"])
+def test_a_frame_that_looks_like_a_change_does_not_move_the_cell_at_once(impl):
+    """A confident cell at 0 (1000 points); one frame brings 11 points at +6 cm with sigma 1.5 cm,
+    rejected by the gate, and 3 at +5 cm with sigma 5 cm, inside it (the lower image border's
+    too-near pixels). The change rule inflates the cell's variance by the squared distance to the
+    rejected mean, (6 cm)^2, so that the next frame's points pass the gate, but only after this frame's
+    accepted points are fused with the prior as it was: the height moves by under a millimetre
+    (inflating first let the 3 points pull it to +5 cm). Two more such frames carry it over."""
+    m = confident_cell_map()
+    h0 = m.layer("elevation")[1, 1]
+    xy = np.full((14, 2), 0.5)
+    z = np.r_[np.full(11, 0.06), np.full(3, 0.05)]
+    var = np.r_[np.full(11, 0.015 ** 2), np.full(3, 0.05 ** 2)]
+    m.update(np.column_stack([xy, z]), var, stamp=10, impl=impl)
+    assert abs(m.layer("elevation")[1, 1] - h0) < 1e-3
+    assert m.layer("variance")[1, 1] >= (0.06 - h0) ** 2
+    for f in range(2):
+        m.update(np.column_stack([xy, z]), var, stamp=11 + f, impl=impl)
+    assert m.layer("elevation")[1, 1] == pytest.approx(0.058, abs=0.005)
+
+
 def test_information_cap_limits_what_one_frame_adds():
     var = 0.01 ** 2
     pts = np.column_stack([np.full(400, 0.5), np.full(400, 0.5), np.zeros(400)])
