@@ -10,7 +10,7 @@ incidence_angles, depth_edges           theta per pixel; left/right depth-edge m
 despeckle                               pixels no neighbour agrees with: their neighbours' median
 mixed_windows                           normal-estimation windows that hold more than one surface
 row_medians                             per pixel, the median depth of its agreeing row neighbours
-surface_depths                          the median of agreeing row medians over 5 rows (binning)
+surface_depths                          median of agreeing row medians over 5 rows (binning; variance floor)
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)

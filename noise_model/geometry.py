@@ -430,7 +430,8 @@ def row_medians(depth_m, half_px: int = ROW_MEDIAN_HALF_PX, jump_rel: float = ED
     own row on its own surface average its noise down (the median of 11 independent Gaussian pixels:
     0.38 of one pixel's standard deviation). :func:`surface_depths` takes the median of these down
     the column, and :func:`noise_model.depth_to_map_points` bins the pixels of mixed windows at the
-    nearer of that depth and the plane's (see :class:`noise_model.MapPoints`).
+    nearer of that depth and the plane's, and takes a pixel's squared distance from it as a floor of
+    its axial variance (see :class:`noise_model.MapPoints`).
 
     Parameters
     ----------
@@ -475,7 +476,9 @@ def surface_depths(depth_m, mask, half_px: int = ROW_MEDIAN_HALF_PX, half_rows: 
     of its rows average along the strip, and their median over 5 rows averages across it (about
     1/5 of one pixel's noise standard deviation where 55 pixels agree), while the agreement keeps the
     other surface of the window out. Used for binning in windows of two surfaces
-    (:func:`mixed_windows`, :class:`noise_model.MapPoints`).
+    (:func:`mixed_windows`, :class:`noise_model.MapPoints`), and the pixel's squared distance from it
+    is a floor of its axial variance there (the window's angle and plane are fitted across both
+    surfaces, so the model's sigma alone understates the noise).
 
     Parameters
     ----------
