@@ -601,8 +601,8 @@ def most_confident(variance, known, n: int) -> np.ndarray:
     if variance.shape != known.shape:
         raise ValueError(f"variance {variance.shape} and known {known.shape} differ in shape")
     idx = np.flatnonzero(known)
-    if not 0 <= n <= idx.size:
-        raise ValueError(f"n must be in [0, {idx.size}] (the known cells), got {n}")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= n <= idx.size:
+        raise ValueError(f"n must be an integer in [0, {idx.size}] (the known cells), got {n!r}")
     if not np.all(np.isfinite(variance.ravel()[idx])):
         raise ValueError("variance must be finite in known cells")
     keep = idx[np.argsort(variance.ravel()[idx], kind="stable")[:n]]

@@ -448,6 +448,11 @@ def row_medians(depth_m, half_px: int = ROW_MEDIAN_HALF_PX, jump_rel: float = ED
         NaN where the pixel is invalid.
     """
     z, valid, th, jr, js = _jump_inputs(depth_m, jump_rel, jump_sigmas, theta)
+    return _row_medians(z, valid, th, jr, js, model, half_px)
+
+
+def _row_medians(z, sel, th, jr, js, model, half_px):
+    """:func:`row_medians` of checked inputs, computed at the pixels ``sel`` only (NaN elsewhere)."""
     h = int(half_px)
     if h != half_px or h < 0:
         raise ValueError(f"half_px must be an integer >= 0, got {half_px!r}")
@@ -460,8 +465,8 @@ def row_medians(depth_m, half_px: int = ROW_MEDIAN_HALF_PX, jump_rel: float = ED
         thr = _jump_threshold(zq, np.broadcast_to(th, zq.shape), jr, js, model)
         agree = np.abs(nbrs - z) <= thr                                         # False where either is NaN
     out = np.full(z.shape, np.nan)
-    if valid.any():
-        out[valid] = np.nanmedian(np.where(agree, nbrs, np.nan)[:, valid], axis=0)
+    if sel.any():
+        out[sel] = np.nanmedian(np.where(agree[:, sel], nbrs[:, sel], np.nan), axis=0)
     return out
 
 
@@ -504,7 +509,7 @@ def surface_depths(depth_m, mask, half_px: int = ROW_MEDIAN_HALF_PX, half_rows: 
     h = int(half_rows)
     if h != half_rows or h < 0:
         raise ValueError(f"half_rows must be an integer >= 0, got {half_rows!r}")
-    r = np.where(m & valid, row_medians(z, half_px, jr, js, model, th), np.nan)
+    r = _row_medians(z, m & valid, th, jr, js, model, half_px)       # only where the column median reads
     H, W = z.shape
     rp = np.pad(r, ((h, h), (0, 0)), constant_values=np.nan)
     nbrs = np.stack([rp[k:k + H] for k in range(2 * h + 1)])                    # (2h + 1, H, W)

@@ -486,8 +486,8 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 gamma_px[by, u] = pg
                 mixed_px[by, u] = 1.0 if mixed else 0.0
 
-    # pass 2b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians)
-    # into rowmed (H, W), NaN for invalid ones; pixels outside mixed windows are neither computed nor
+    # pass 2b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians;
+    # for the surface median, which bins the pixel and floors its variance) into rowmed (H, W), NaN for invalid ones; pixels outside mixed windows are neither computed nor
     # written (pass 3 reads rowmed only where mixed_px says so), and rows without any are skipped.
     for v in prange(H):
         by = v // b
@@ -641,8 +641,9 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 s2 = max(s2, dev2)
                 # in a window of two surfaces the model's sigma is the fit's across both (its angle,
                 # its plane): the pixel's distance from its own surface's median is a floor, as a
-                # speckle's from its neighbours (NaN: not mixed, or no agreeing row)
-                dr = 0.0 if sp else z - crow[j]
+                # speckle's from its neighbours (a speckle: its replaced depth, so 0; NaN: not mixed)
+                zr = z if sp else crow[j]
+                dr = z - zr
                 s2 = max(s2, dr * dr) if dr == dr else s2
                 ru = up[u]
                 a0 = R00 * ru + b0
@@ -669,7 +670,6 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 # x, y where the ray meets the local plane (the cell the pixel looks at); in a window of
                 # two surfaces at the nearer of the plane and the surface median (a speckle: its
                 # replaced depth); z from the measured depth (see MapPoints)
-                zr = z if sp else crow[j]
                 zb = (min(zf, zr) if mixed_px[by, u] > 0.0 else zs) if bin_at_plane else z
                 pts[0, i] = zb * a0 + t0
                 pts[1, i] = zb * a1 + t1

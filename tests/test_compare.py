@@ -302,6 +302,8 @@ def test_most_confident_by_hand():
     np.testing.assert_array_equal(most_confident(v, known, 5), known)
     with pytest.raises(ValueError, match="n must be"):
         most_confident(v, known, 6)
+    with pytest.raises(ValueError, match="n must be an integer"):
+        most_confident(v, known, 2.5)
     with pytest.raises(ValueError, match="differ in shape"):
         most_confident(v, known[:, :2], 1)
     with pytest.raises(ValueError, match="finite"):
