@@ -215,10 +215,11 @@ class ElevationMap:
         rows, cols = (ij[0, 0], ij[1, 0]), (ij[0, 1], ij[1, 1])
         if impl == "numba":
             neighbours.update_neighbour_spread(self.data, self.geometry, self.fusion_params.neighbour_radius, rows,
-                                               cols, self.nthreads)
+                                               cols, self.nthreads, self.fusion_params.neighbour_estimator)
         else:
             neighbours.update_neighbour_spread_reference(self.data, self.geometry,
-                                                         self.fusion_params.neighbour_radius, rows, cols)
+                                                         self.fusion_params.neighbour_radius, rows, cols,
+                                                         self.fusion_params.neighbour_estimator)
 
     def _visibility(self, origin, points_map, height_var, stamp, impl) -> int:
         from . import visibility
