@@ -20,8 +20,8 @@ refined to the Paule-Mandel estimator, the root of the generalised Q statistic
 
     Q(tau^2) = sum w_j (h_j - m)^2 = k - 1,   w_j = 1 / (P_j + tau^2),   m = sum w_j h_j / sum w_j,
 
-solved by safeguarded Newton steps from the DerSimonian-Laird value (Q decreases in tau^2; dQ/dtau^2 =
--sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
+solved by safeguarded Newton steps on 1 / Q (linear in tau^2 when the P_j are equal) from the cell's
+last root (a warm start) or the DerSimonian-Laird value (Q decreases in tau^2; dQ/dtau^2 = -sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
 Why: a D435 map's P span four decades (near cells (1 mm)^2, far cells centimetres), and
 DerSimonian-Laird's weights are then the precise cells': in a window of a floor and a box top it sees
 the spread as the few precise cells do, and falls below half the true spread in one window in five
@@ -95,40 +95,45 @@ def _cell(data, bi, bj):
 
 
 @njit(**_JIT)
-def _paule_mandel_step(y, p, k, t):
-    """One evaluation at tau^2 = t over k studies (heights y relative to a reference [m], variances p
-    [m^2]): f = Q(t) - (k - 1) and its derivative's magnitude D = sum w^2 (y - m)^2, w = 1 / (p + t),
-    in two passes (the mean first) so that Q keeps its precision where the weights reach 1e6."""
+def _paule_mandel_step(y, p, k, t, w):
+    """One evaluation at tau^2 = t over k cells (heights y relative to a reference [m], variances p
+    [m^2]): Q(t) = sum w (y - m)^2 and D = sum w^2 (y - m)^2 = -dQ/dt, w = 1 / (p + t) (kept in the
+    buffer w), in two passes (the mean first) so that Q keeps its precision where w reaches 1e6."""
     s1 = 0.0
     sy = 0.0
     for q in range(k):
-        w = 1.0 / (p[q] + t)
-        s1 += w
-        sy += w * y[q]
+        wq = 1.0 / (p[q] + t)
+        w[q] = wq
+        s1 += wq
+        sy += wq * y[q]
     m = sy / s1
     qq = 0.0
     dd = 0.0
     for q in range(k):
-        w = 1.0 / (p[q] + t)
-        e = w * (y[q] - m) * (y[q] - m)
+        d = y[q] - m
+        e = w[q] * d * d
         qq += e
-        dd += w * e
-    return qq - (k - 1.0), dd
+        dd += w[q] * e
+    return qq, dd
 
 
 @njit(**_JIT)
-def _paule_mandel(y, p, k, t0):
-    """Paule-Mandel tau^2 [m^2]: the root of Q(t) = sum w (y - m)^2 = k - 1, w = 1 / (p + t), by Newton's
-    method from t0 (the DerSimonian-Laird value), kept inside a bracket [lo, hi] that it bisects when a
-    step leaves it. Q decreases in t; the caller ensures Q(0) > k - 1, so the root is positive.
-    Converged when |Q - (k - 1)| <= PM_TOL (k - 1) or the bracket is below 1e-12 of t (at most 100
-    steps)."""
+def _paule_mandel(y, p, k, t0, w):
+    """Paule-Mandel tau^2 [m^2] of k cells: the root of Q(t) = sum w (y - m)^2 = k - 1, w = 1 / (p + t),
+    from t0 (the cell's last root, else the DerSimonian-Laird value) by Newton's method on
+    1 / Q(t) = 1 / (k - 1), which is linear in t when the p are equal (one step then;
+    t += Q (Q - (k - 1)) / ((k - 1) D)), kept inside a bracket [lo, hi] that it bisects when a step
+    leaves it. Q decreases in t; the caller ensures
+    Q(0) > k - 1, so the root is positive. Converged when |Q - (k - 1)| <= PM_TOL (k - 1) or the
+    bracket is below 1e-12 of t (at most PM_MAX_STEPS evaluations)."""
     lo = 0.0
     hi = np.inf
     t = t0
+    km1 = k - 1.0
     for _ in range(PM_MAX_STEPS):
-        f, dd = _paule_mandel_step(y, p, k, t)
-        if abs(f) <= PM_TOL * (k - 1.0):
+        qq, dd = _paule_mandel_step(y, p, k, t, w)
+        f = qq - km1
+        if abs(f) <= PM_TOL * km1:
             break
         if f > 0.0:
             lo = t
@@ -136,7 +141,7 @@ def _paule_mandel(y, p, k, t0):
             hi = t
         if hi - lo <= 1e-12 * t:
             break
-        tn = t + f / dd if dd > 0.0 else np.inf
+        tn = t + qq * f / (km1 * dd) if dd > 0.0 else np.inf
         if not (tn > lo and tn < hi):
             tn = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
         t = tn
@@ -144,18 +149,18 @@ def _paule_mandel(y, p, k, t0):
 
 
 @njit(**_JIT)
-def _paule_mandel_cell(Hl, Pl, ii, c, r, t0, hw, pw):
+def _paule_mandel_cell(Hl, Pl, ii, c, r, t0, hw, pw, ww):
     """Gather the counting cells of the window whose top-left is (ii, c) in the padded copies Hl, Pl
-    (heights relative to the reference, P; P = 0 where a cell does not count) into hw, pw and return
-    their Paule-Mandel tau^2 from the DerSimonian-Laird t0."""
+    (heights relative to the reference, P; P = inf where a cell does not count) into hw, pw (branch
+    free: every cell is written, the next one overwrites it if it does not count) and return their
+    Paule-Mandel tau^2 from the DerSimonian-Laird t0."""
     k = 0
     for a in range(ii, ii + 2 * r + 1):
         for b in range(c, c + 2 * r + 1):
-            if Pl[a, b] > 0.0:
-                hw[k] = Hl[a, b]
-                pw[k] = Pl[a, b]
-                k += 1
-    return _paule_mandel(hw, pw, k, t0)
+            hw[k] = Hl[a, b]
+            pw[k] = Pl[a, b]
+            k += Pl[a, b] < np.inf
+    return _paule_mandel(hw, pw, k, t0, ww)
 
 
 @njit(parallel=True, **_JIT)
@@ -171,7 +176,7 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
     R = i1 - i0 + 1 + 2 * r                # padded rows of A: map rows i0 - r .. i1 + r
     A = np.zeros((5, R, C))
     Hl = np.zeros((R, C + 2 * r))            # the heights and P of the padded window, read by the
-    Pl = np.zeros((R, C + 2 * r))            # Paule-Mandel solve (P = 0: the cell does not count)
+    Pl = np.full((R, C + 2 * r), np.inf)     # Paule-Mandel solve (P = inf: the cell does not count)
     for ii in prange(R):
         i = i0 - r + ii
         if i < 0 or i >= n:
@@ -210,6 +215,7 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
         B = np.zeros((5, C))
         hw = np.empty((2 * r + 1) ** 2)
         pw = np.empty((2 * r + 1) ** 2)
+        ww = np.empty((2 * r + 1) ** 2)
         for t in range(2 * r + 1):
             for f in range(5):
                 for c in range(C):
@@ -233,7 +239,9 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
                 if den > 0.0 and qq > k - 1.0:
                     tau2 = (qq - (k - 1.0)) / den
                     if paule_mandel:
-                        tau2 = _paule_mandel_cell(Hl, Pl, i - i0, c, r, tau2, hw, pw)
+                        prev = data[NEIGHBOUR_SPREAD, bi, bj]        # the last frame's root: a warm start
+                        t0 = prev if (prev > 0.0 and prev < np.inf) else tau2
+                        tau2 = _paule_mandel_cell(Hl, Pl, i - i0, c, r, t0, hw, pw, ww)
             data[NEIGHBOUR_SPREAD, bi, bj] = tau2
             data[VARIANCE, bi, bj] = p0 + max(s, tau2)
 
@@ -317,7 +325,7 @@ def _paule_mandel_reference(y, p, cells, r, t0):
         Map indices of the cells to solve (their DerSimonian-Laird tau^2 is positive).
     r : int
     t0 : ndarray, shape (m,)
-        The DerSimonian-Laird tau^2 of each cell [m^2].
+        Where to start [m^2]: the cell's last root, else its DerSimonian-Laird tau^2.
 
     Returns
     -------
@@ -344,7 +352,8 @@ def _paule_mandel_reference(y, p, cells, r, t0):
         w = 1.0 / (Pw[idx] + t[idx, None])
         m = np.sum(w * Y[idx], axis=1) / np.sum(w, axis=1)
         e = w * (Y[idx] - m[:, None]) ** 2
-        f = np.sum(e, axis=1) - km1[idx]
+        qq = np.sum(e, axis=1)
+        f = qq - km1[idx]
         dd = np.sum(w * e, axis=1)
         ti = t[idx]
         done = np.abs(f) <= PM_TOL * km1[idx]
@@ -352,7 +361,7 @@ def _paule_mandel_reference(y, p, cells, r, t0):
         hi_i = np.where(f > 0, hi[idx], ti)
         done |= hi_i - lo_i <= 1e-12 * ti
         with np.errstate(divide="ignore", invalid="ignore"):
-            tn = np.where(dd > 0, ti + f / dd, np.inf)
+            tn = np.where(dd > 0, ti + qq * f / (km1[idx] * dd), np.inf)
         bad = ~((tn > lo_i) & (tn < hi_i))
         tn = np.where(bad, np.where(np.isfinite(hi_i), 0.5 * (lo_i + hi_i), 2.0 * ti), tn)
         lo[idx], hi[idx] = lo_i, hi_i
@@ -405,8 +414,10 @@ def update_neighbour_spread_reference(data, geometry, radius: int = 2, rows=None
     if estimator == "paule_mandel":
         cells = np.argwhere(region & ok & positive)
         if len(cells):
-            tau2[cells[:, 0], cells[:, 1]] = _paule_mandel_reference(H - ref, np.where(ok, P, np.inf), cells, r,
-                                                                   tau2[cells[:, 0], cells[:, 1]])
+            ci, cj = cells[:, 0], cells[:, 1]
+            prev = geometry.unwrap(data[NEIGHBOUR_SPREAD])[ci, cj]          # the last root: a warm start
+            t0 = np.where((prev > 0) & (prev < np.inf), prev, tau2[ci, cj])
+            tau2[ci, cj] = _paule_mandel_reference(H - ref, np.where(ok, P, np.inf), cells, r, t0)
     upd = geometry.wrap(region & ok)
     tau2 = geometry.wrap(tau2)
     s = np.where(data[SPREAD] > 0, data[SPREAD], 0.0)
