@@ -68,6 +68,7 @@ from numba import njit, prange
 
 from noise_model.kernels import FASTMATH, resolve_threads
 
+from .neighbours import ESTIMATORS
 from .layers import (
     ELEVATION,
     HVAR_X,
@@ -224,9 +225,8 @@ class FusionParams:
         r = self.neighbour_radius
         if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or not 0 <= r <= 10:
             raise ValueError(f"neighbour_radius must be an integer in [0, 10] cells, got {r!r}")
-        if self.neighbour_estimator not in ("paule_mandel", "dersimonian_laird"):
-            raise ValueError("neighbour_estimator must be 'paule_mandel' or 'dersimonian_laird', "
-                             f"got {self.neighbour_estimator!r}")
+        if self.neighbour_estimator not in ESTIMATORS:
+            raise ValueError(f"neighbour_estimator must be one of {ESTIMATORS}, got {self.neighbour_estimator!r}")
         m = self.min_points
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= 10000:
             raise ValueError(f"min_points must be an integer in [1, 10000], got {m!r}")

@@ -21,7 +21,8 @@ refined to the Paule-Mandel estimator, the root of the generalised Q statistic
     Q(tau^2) = sum w_j (h_j - m)^2 = k - 1,   w_j = 1 / (P_j + tau^2),   m = sum w_j h_j / sum w_j,
 
 solved by safeguarded Newton steps on 1 / Q (linear in tau^2 when the P_j are equal) from the cell's
-last root (a warm start) or the DerSimonian-Laird value (Q decreases in tau^2; dQ/dtau^2 = -sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
+last root (a warm start) or the DerSimonian-Laird value (Q decreases in tau^2; dQ/dtau^2 =
+-sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
 Why: a D435 map's P span four decades (near cells (1 mm)^2, far cells centimetres), and
 DerSimonian-Laird's weights are then the precise cells': in a window of a floor and a box top it sees
 the spread as the few precise cells do, and falls below half the true spread in one window in five
@@ -29,9 +30,9 @@ the spread as the few precise cells do, and falls below half the true spread in 
 1 / (P_j + tau^2), evenly once the spread exceeds their own variances (Veroniki et al. 2016, Res. Synth.
 Methods 7: 55-79, recommend it over DerSimonian-Laird). Measured (``elevmap compare``, 60 frames,
 seed 0, paper mapper, stairs / boxes, (1 mm)^2 floor): 1-sigma / 2-sigma coverage 0.714 / 0.955 and
-0.705 / 0.923 with DerSimonian-Laird, 0.721 / 0.958 and 0.720 / 0.934 with Paule-Mandel; mean NLL
--2.97 / -2.41 -> -2.95 / -2.43. It costs a gather of each cell's window and a few Newton steps
-(``elevmap bench``). It is stored as ``neighbour_spread`` and the cell's
+0.705 / 0.922 with DerSimonian-Laird, 0.721 / 0.958 and 0.720 / 0.934 with Paule-Mandel; mean NLL
+-2.97 / -2.41 -> -2.95 / -2.43. It costs a gather of each cell's window and a few Newton steps: the
+mapper 2.7 ms per frame (``elevmap bench``, 848x480: 8.3 -> 11.0 ms). It is stored as ``neighbour_spread`` and the cell's
 variance becomes P + max(spread, neighbour_spread): the height at the centre of a cell in a window
 whose cells disagree is uncertain by that disagreement. The fusion's gate and prior work on the
 variance without it (:func:`elevmap.fusion._nbr_excess`; the visibility clean-up too); a new point's
@@ -123,9 +124,9 @@ def _paule_mandel(y, p, k, t0, w):
     from t0 (the cell's last root, else the DerSimonian-Laird value) by Newton's method on
     1 / Q(t) = 1 / (k - 1), which is linear in t when the p are equal (one step then;
     t += Q (Q - (k - 1)) / ((k - 1) D)), kept inside a bracket [lo, hi] that it bisects when a step
-    leaves it. Q decreases in t; the caller ensures
-    Q(0) > k - 1, so the root is positive. Converged when |Q - (k - 1)| <= PM_TOL (k - 1) or the
-    bracket is below 1e-12 of t (at most PM_MAX_STEPS evaluations)."""
+    leaves it. Q decreases in t; the caller ensures Q(0) > k - 1, so the root is positive. Converged
+    when |Q - (k - 1)| <= PM_TOL (k - 1) or the bracket is below 1e-12 of t (at most PM_MAX_STEPS
+    evaluations)."""
     lo = 0.0
     hi = np.inf
     t = t0
@@ -153,7 +154,7 @@ def _paule_mandel_cell(Hl, Pl, ii, c, r, t0, hw, pw, ww):
     """Gather the counting cells of the window whose top-left is (ii, c) in the padded copies Hl, Pl
     (heights relative to the reference, P; P = inf where a cell does not count) into hw, pw (branch
     free: every cell is written, the next one overwrites it if it does not count) and return their
-    Paule-Mandel tau^2 from the DerSimonian-Laird t0."""
+    Paule-Mandel tau^2, started at t0."""
     k = 0
     for a in range(ii, ii + 2 * r + 1):
         for b in range(c, c + 2 * r + 1):
