@@ -382,3 +382,31 @@ def test_sim_effects_from_a_gap_report(tmp_path):
     assert [e["name"] for e in r["sim_effects"]] == ["depth_bias", "invalid_band"]
     with pytest.raises(ValueError, match="gap report"):
         parse_effects(str(tmp_path / "missing.json"))
+
+
+# ---------------------------------------------------------------------------------------------
+# issue 5's must-show, on the default walks (seed 0, 60 frames, 424x240; README "Calibration")
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("scene", ["stairs", "boxes"])
+def test_with_reality_equal_to_the_model_the_paper_mapper_is_calibrated_and_best(scene):
+    """Reality = the paper's model: the paper mapper's 2-sigma coverage in [0.93, 0.97], 1-sigma in
+    [0.64, 0.73], the lowest mean NLL of all mappers, and an RMSE within 5 % of the best other's."""
+    r = run_compare(scene, 60, show_progress=False)["mappers"]
+    paper = r["paper"]
+    assert 0.93 <= paper["coverage_2sigma"] <= 0.97
+    assert 0.64 <= paper["coverage_1sigma"] <= 0.73
+    others = [m for name, m in r.items() if name != "paper"]
+    assert paper["nll"] < min(m["nll"] for m in others)
+    assert paper["rmse_m"] <= 1.05 * min(m["rmse_m"] for m in others)
+
+
+@pytest.mark.parametrize("scene", ["stairs", "boxes"])
+def test_correlated_noise_costs_calibration_and_the_cap_keeps_two_sigma(scene):
+    """Spatially correlated noise in the simulated reality: the paper mapper loses accuracy and
+    likelihood against the model's own reality, and paper_capped keeps 2-sigma coverage >= 0.90."""
+    plain = run_compare(scene, 60, show_progress=False, mappers=["paper", "paper_capped"])["mappers"]
+    corr = run_compare(scene, 60, show_progress=False, mappers=["paper", "paper_capped"],
+                       sim_effects="correlated_noise")["mappers"]
+    assert corr["paper"]["rmse_m"] > 1.2 * plain["paper"]["rmse_m"]
+    assert corr["paper"]["nll"] > plain["paper"]["nll"] + 0.5
+    assert corr["paper_capped"]["coverage_2sigma"] >= 0.90
