@@ -25,7 +25,7 @@ last root (a warm start) or the DerSimonian-Laird value (Q decreases in tau^2; d
 -sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
 Why: a D435 map's P span four decades (near cells (1 mm)^2, far cells centimetres), and
 DerSimonian-Laird's weights are then the precise cells': in a window of a floor and a box top it sees
-the spread as the few precise cells do, and falls below half the true spread in one window in five
+the spread as the few precise cells do, and falls below half the true spread in one window in four
 (``tests/test_neighbours.py``), a cell beside a box made confident. Paule-Mandel weighs the cells by
 1 / (P_j + tau^2), evenly once the spread exceeds their own variances (Veroniki et al. 2016, Res. Synth.
 Methods 7: 55-79, recommend it over DerSimonian-Laird). Measured (``elevmap compare``, 60 frames,
