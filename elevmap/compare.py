@@ -72,7 +72,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from noise_model.alternatives import make_variance_model
-from noise_model.checks import check_names
+from noise_model.checks import check_names, check_positive_scalar
 from noise_model.effects import EFFECTS, Effect, make_effect
 
 from .elevation_map import ElevationMap
@@ -175,8 +175,6 @@ def _replace(params, **changes):
 
 
 def _check_max_variance(value) -> float:
-    from noise_model.checks import check_positive_scalar
-
     return check_positive_scalar(value, "max_variance", unit=" m^2")
 
 
