@@ -4,8 +4,8 @@ Public API: :class:`ElevationMap` (the map), :class:`Mapper` and :class:`Camera`
 noise model -> map). The noise model itself is the separate package :mod:`noise_model`.
 """
 
-from .elevation_map import ElevationMap
-from .fusion import FusionParams
+from .map.elevation_map import ElevationMap
+from .map.fusion import FusionParams
 from .mapper import Camera, Mapper
 
 __all__ = ["ElevationMap", "FusionParams", "Mapper", "Camera"]

@@ -71,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    from .compare import effects_help
+    from .commands.compare import effects_help
 
     p = sub.add_parser("compare", help="one simulated walk through several mappers: error and calibration",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "  (2 cm), quadratic (elevation_mapping_cupy: 0.05 z^2), anybotics_d435\n"
                                    "  (ANYbotics' D435 preset), paper_capped (the paper's model with the per-frame\n"
                                    "  information cap --cap)\n"
-                                   "sim effects (noise_model.effects), NAME[:KEY=VALUE[:KEY=VALUE]] comma-separated,\n"
+                                   "sim effects (noise_model.sim.effects), NAME[:KEY=VALUE[:KEY=VALUE]] comma-separated,\n"
                                    "or a gap report (elevmap gap --json PATH): its selected effects as fitted:\n"
                                    + effects_help() +
                                    "\ne.g. --sim-effects correlated_noise:length_px=5,depth_bias  or  --sim-effects gap.json")
@@ -130,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single frames of DIR (shared/realdata)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    from .protocol import PROTOCOL
+    from .commands.protocol import PROTOCOL
 
     p = sub.add_parser("characterize", help="your own D435 noise model from a capture set (the paper's method)",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -172,12 +172,12 @@ def _source_help() -> str:
 
 def _cmd_demo(args) -> int:
     if args.noise_model:
-        from .demo import run_noise_demo
+        from .commands.demo import run_noise_demo
 
         summary = run_noise_demo(args.rrd, seed=args.seed, show_progress=not args.no_progress)
         print(json.dumps(summary, indent=2))
     else:
-        from .demo import run_mapping_demo
+        from .commands.demo import run_mapping_demo
 
         summary = run_mapping_demo(args.rrd, seed=args.seed, n_frames=args.frames,
                                    show_progress=not args.no_progress, spawn=args.spawn)
@@ -272,12 +272,12 @@ class _nullcontext:
 
 
 def _cmd_bench(args) -> int:
-    from .bench import format_table, run_bench
+    from .commands.bench import format_table, run_bench
     from .fileio import write_json_atomic
 
     if args.frames < 1 or args.reference_frames < 1:
         raise ValueError("--frames and --reference-frames must be >= 1")
-    from .bench import GROUPS
+    from .commands.bench import GROUPS
 
     groups = GROUPS if args.only is None else tuple(g.strip() for g in args.only.split(",") if g.strip())
     report = run_bench(args.frames, args.reference_frames, args.threads, show_progress=not args.no_progress,
@@ -299,7 +299,7 @@ def _cmd_simulate(args) -> int:
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     if args.grid:
-        from .simulate import simulate_capture_set
+        from .commands.simulate import simulate_capture_set
 
         if not args.out:
             raise ValueError("--grid needs --out DIR")
@@ -326,7 +326,7 @@ def _cmd_simulate(args) -> int:
 def _cmd_compare(args) -> int:
     from pathlib import Path
 
-    from .compare import COMPARE_MAX_VARIANCE, DEFAULT_CAP, format_table, json_ready, run_compare
+    from .commands.compare import COMPARE_MAX_VARIANCE, DEFAULT_CAP, format_table, json_ready, run_compare
     from .fileio import write_json_atomic
 
     if not args.json:
@@ -353,7 +353,7 @@ def _cmd_compare(args) -> int:
 
 
 def _cmd_gap(args) -> int:
-    from .gap import format_selftest, format_summary, run_gap, run_realdata, run_selftest
+    from .commands.gap import format_selftest, format_summary, run_gap, run_realdata, run_selftest
 
     if args.selftest:
         if args.real or args.realdata or args.rrd:
@@ -382,7 +382,7 @@ def _cmd_gap(args) -> int:
 
 
 def _cmd_characterize(args) -> int:
-    from .characterize import format_summary, run_characterize
+    from .commands.characterize import format_summary, run_characterize
 
     report = run_characterize(args.captures, json_path=args.json, rrd_path=args.rrd, figures_dir=args.figures,
                               model_path=args.model, overwrite=args.overwrite, show_progress=not args.no_progress)

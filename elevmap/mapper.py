@@ -18,7 +18,7 @@ from noise_model.checks import check_intrinsics, check_positive_scalar, check_tr
 from noise_model.d435 import SensorModel
 from noise_model.kernels import MAX_DEPTH_M, MIN_DEPTH_M
 
-from .elevation_map import ElevationMap
+from .map.elevation_map import ElevationMap
 
 __all__ = ["Camera", "Mapper"]
 

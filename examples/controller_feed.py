@@ -18,7 +18,7 @@ import numpy as np
 
 from elevmap import Camera, ElevationMap, Mapper
 from elevmap.sources.rrd import RrdSource
-from noise_model.scene import DEFAULT_T_BASE_CAM
+from noise_model.sim.scene import DEFAULT_T_BASE_CAM
 
 FEET_BASE = np.array([[0.35, 0.2, -0.4], [0.35, -0.2, -0.4], [-0.35, 0.2, -0.4], [-0.35, -0.2, -0.4]])
 CONTROL_DT = 0.02

@@ -20,10 +20,10 @@ import zlib
 
 import numpy as np
 
-from elevmap.compare import run_compare
-from elevmap.gap import diagnose, selftest_geometries
-from noise_model import effects as E
-from noise_model.capture_data import CaptureData, simulate_capture
+from elevmap.commands.compare import run_compare
+from elevmap.commands.gap import diagnose, selftest_geometries
+from noise_model.sim import effects as E
+from noise_model.analysis.capture_data import CaptureData, simulate_capture
 
 #: The effects hidden in the "real" data, at parameters the diagnosis is not given.
 HIDDEN = [("invalid_band", {"margin_px": 5.0}), ("correlated_noise", {"sigma_z_fraction": 1.5, "length_px": 3.0})]

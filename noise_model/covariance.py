@@ -32,12 +32,7 @@ from __future__ import annotations
 import numpy as np
 
 from .checks import (
-    check_angles,
-    check_covariances,
-    check_mask,
-    check_points,
-    check_pose_cov,
-    check_positive_scalar,
+    check_angles, check_covariances, check_mask, check_points, check_pose_cov, check_positive_scalar,
     check_transform,
 )
 from .d435 import D435, SensorModel, _axial_sigma_unchecked, _axial_variance_unchecked

@@ -18,41 +18,23 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numba
 import numpy as np
 from numba import njit, prange
+from .numba_config import JIT, resolve_threads, threads
 
 from .checks import check_depth, check_intrinsics, check_pose_cov, check_positive_scalar, check_transform
 from .covariance import point_covariances, to_map_frame
 from .d435 import D435, SensorModel
 from .geometry import (
-    RSS_FLOOR_REL,
-    EDGE_JUMP_REL,
-    EDGE_JUMP_SIGMAS,
-    MIXED_WINDOW_Z,
-    NORMAL_MIN_POINTS,
-    ROW_MEDIAN_HALF_PX,
-    SURFACE_HALF_ROWS,
-    WINDOW_RADIUS_BLOCKS,
-    _DEGENERATE_REL,
-    _centred_moments,
-    default_block_px,
-    deproject,
-    depth_edges,
-    depth_to_metres,
-    incidence_angle_stats,
-    mixed_windows,
-    plane_depths,
-    despeckle,
+    RSS_FLOOR_REL, EDGE_JUMP_REL, EDGE_JUMP_SIGMAS, MIXED_WINDOW_Z, NORMAL_MIN_POINTS, ROW_MEDIAN_HALF_PX,
+    SURFACE_HALF_ROWS, WINDOW_RADIUS_BLOCKS, _DEGENERATE_REL, _centred_moments, default_block_px, deproject,
+    depth_edges, depth_to_metres, incidence_angle_stats, mixed_windows, plane_depths, despeckle,
     surface_depths,
 )
 from .d435 import THETA_GRID, THETA_QUADRATURE, _axial_sigma_unchecked
 
-__all__ = ["MapPoints", "Workspace", "depth_to_map_points", "depth_to_map_points_reference", "FASTMATH", "resolve_threads"]
+__all__ = ["MapPoints", "Workspace", "depth_to_map_points", "depth_to_map_points_reference"]
 
-#: numba fastmath flags: no nnan/ninf (isnan must work), no arcp (exact division for binning).
-FASTMATH = {"nsz", "contract", "afn", "reassoc"}
-_JIT = dict(fastmath=FASTMATH, error_model="numpy", cache=True)
 
 _GH_X = np.array(THETA_QUADRATURE[0])
 _GH_W = np.array(THETA_QUADRATURE[1])
@@ -140,31 +122,23 @@ class Workspace:
         self.row_median = np.empty(self.shape)  # per pixel of a mixed window: its row median
 
 
-def resolve_threads(nthreads) -> int:
-    """Validate a thread count (None = numba's current setting) against numba's maximum."""
-    if nthreads is None:
-        return numba.get_num_threads()
-    n = int(nthreads)
-    if n < 1 or n > numba.config.NUMBA_NUM_THREADS:
-        raise ValueError(f"nthreads must be in [1, {numba.config.NUMBA_NUM_THREADS}], got {nthreads}")
-    return n
 
 
 # ---------------------------------------------------------------------------------------------
 # numba kernels
 # ---------------------------------------------------------------------------------------------
 #: noise_model.geometry._centred_moments, compiled (S a (10,) or longer moment vector, n a number)
-_centred = njit(**_JIT)(_centred_moments)
+_centred = njit(**JIT)(_centred_moments)
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _rss(S, n, alpha, beta):
     """numba version of :func:`noise_model.geometry._plane_rss` (the same arithmetic on ``_centred``)."""
     _, _, _, _, _, _, cuw, cvw, cww = _centred(S, n)
     return n * (cww - alpha * cuw - beta * cvw)
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
     """(theta [rad], alpha, beta, gamma, ok) of the inverse-depth plane fit w = alpha u' + beta v' + gamma
     of summed moments S = (n, su, sv, sw, suu, suv, svv, suw, svw); see :func:`noise_model.incidence_angles`."""
@@ -181,7 +155,7 @@ def _plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
     return math.atan2(math.hypot(alpha, beta), abs(gamma)), alpha, beta, gamma, True
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _theta_std_from_moments(S, alpha, beta, gamma):
     """Standard deviation [rad] of the plane fit's theta from the summed moments S (10,); numba version of
     :func:`noise_model.geometry._theta_std_from_moments_numpy` (the caller passes only fitted planes)."""
@@ -213,7 +187,7 @@ def _theta_std_from_moments(S, alpha, beta, gamma):
     return min(math.sqrt(max(var, 0.0)), 0.5 * math.pi)      # beyond 90 deg: the angle is simply unknown
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw):
     """(E[g], E[g^2]) of the angle gain for theta ~ N(t, ts^2): the Gauss-Hermite nodes hx, weights hw
     where t +- 4 ts lies inside (0, theta_max), else the grid gx, gw (THETA_QUADRATURE, THETA_GRID)."""
@@ -230,7 +204,7 @@ def _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw):
     return eg, eg2
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
     """Whether neighbour depth zn (NaN / -inf: none) agrees with z: |zn - z| within the depth-edge
     threshold at the nearer depth with the pixel's angle gain g (noise_model.despeckle)."""
@@ -243,7 +217,7 @@ def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
     return d <= thr_sig * (c0 + c1 * zq + c2 * zq * zq + g * zq * math.sqrt(zq))
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _rank_median(buf, k):
     """The median of buf[:k] (k >= 1): the middle one or two by rank, ties broken by position; k^2
     branch-free comparisons cost less than the mispredicted branches of a sort at these sizes."""
@@ -261,7 +235,7 @@ def _rank_median(buf, k):
     return (a + b) / 2.0
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
     """The median of the depths of row zp (padded: zp[c + 1] is column c) within half columns of u that
     agree with z, z's own included (noise_model.row_medians); buf holds at least 2 half + 1 values."""
@@ -275,7 +249,7 @@ def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
     return _rank_median(buf, k)
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _column_median(R, mixed_px, b, v, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
     """The median of R[v - half .. v + half, u] that agree with z (noise_model.surface_depths), R read only
     where mixed_px (per block row b) marks the pixel's window mixed, NaN there meaning invalid; R[v, u] is
@@ -290,7 +264,7 @@ def _column_median(R, mixed_px, b, v, u, z, g, half, jump_rel, thr_sig, c0, c1, 
     return _rank_median(buf, k) if k > 0 else z
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, buf):
     """The median depth of the valid 8 neighbours of pixel (v, u) at depth z when none of them agrees with
     it (a speckle), else NaN (noise_model.despeckle)."""
@@ -313,7 +287,7 @@ def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0,
     return _rank_median(buf, k) if k > 0 else np.nan
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _window_mixed(M, S, by, bx, radius, a, b_, c, mix_z, floor_rel):
     """Whether the window of block (by, bx), with moments S summed over it and plane
     w = a u' + b_ v' + c, holds more than one surface: numba version of
@@ -334,7 +308,7 @@ def _window_mixed(M, S, by, bx, radius, a, b_, c, mix_z, floor_rel):
     return _mixed_from_sums(between, max(rss - between, 0.0), dof, nblocks, S[0], S[3], mix_z, floor_rel)
 
 
-@njit(**_JIT)
+@njit(**JIT)
 def _mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel):
     """The test of noise_model.geometry.mixed_windows from a window's sums (scalar version)."""
     if nblocks <= 3.0 or dof <= 0.0:
@@ -347,7 +321,7 @@ def _mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_re
     return between * dof > q * q * q * k * within
 
 
-@njit(parallel=True, **_JIT)
+@njit(parallel=True, **JIT)
 def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params, zrange, block, radius,
                          min_points, degenerate_rel, bin_at_plane, mix_z, row_half, rows_half, hx, hw, gx, gw, rowmed,
                          pts, hvar, hcov, pix):
@@ -749,9 +723,7 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         raise ValueError(f"workspace must be a Workspace of the depth image's size {d.shape}")
     intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
     edge = np.array([EDGE_JUMP_REL, EDGE_JUMP_SIGMAS, NOISE_DEPTH_SIGMAS])
-    previous = numba.get_num_threads()
-    numba.set_num_threads(n)
-    try:
+    with threads(n):
         N = _depth_to_map_kernel(d, scale, intr, T, np.zeros((6, 6)) if P is None else P, P is not None,
                                  model.params_array(), edge, np.array([zmin, zmax]), b, WINDOW_RADIUS_BLOCKS,
                                  NORMAL_MIN_POINTS,
@@ -760,8 +732,6 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
                                  ws.points_map, ws.height_var,
                                  ws.horizontal_cov,
                                  ws.pixel)
-    finally:
-        numba.set_num_threads(previous)
     out = MapPoints(ws.points_map[:, :N].T, ws.height_var[:N], ws.horizontal_cov[:, :N].T, ws.pixel[:N])
     if workspace is None:   # fresh arrays of exactly N rows, not views of an oversized buffer
         out = MapPoints(*(np.ascontiguousarray(a) for a in out))

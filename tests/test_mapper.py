@@ -5,8 +5,8 @@ import pytest
 
 import noise_model as nm
 from elevmap import Camera, ElevationMap, FusionParams, Mapper
-from elevmap.layers import LAYERS
-from noise_model.sim import camera_extrinsics
+from elevmap.map.layers import LAYERS
+from noise_model.sim.targets import camera_extrinsics
 
 W, H = 424, 240
 K = nm.D435.intrinsics(W, H)

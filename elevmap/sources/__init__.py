@@ -17,11 +17,7 @@ from .captures import Capture, CaptureSet, read_capture_set, write_capture_set
 from .folder import DepthFolderSource, read_intrinsics
 from .poses import PoseTrack, read_pose_file, with_poses
 from .realsense import (
-    LiveRealSenseSource,
-    NoRealSenseDevice,
-    RealSenseFileSource,
-    RealSenseUnavailable,
-    record_db3,
+    LiveRealSenseSource, NoRealSenseDevice, RealSenseFileSource, RealSenseUnavailable, record_db3,
 )
 
 __all__ = [

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 import noise_model as nm
-from noise_model.scene import Scene, simulate_walk
+from noise_model.sim.scene import Scene, simulate_walk
 
 from ..frame import Frame
 
@@ -33,7 +33,7 @@ class SimulatedWalk:
 
     Parameters
     ----------
-    scene : str or noise_model.scene.Scene
+    scene : str or noise_model.sim.scene.Scene
         "demo" (box field then stairs), "stairs", "boxes", "slope", "rough", or a Scene.
     n_frames : int, optional
         Frames to render (the whole path by default).
@@ -48,7 +48,7 @@ class SimulatedWalk:
     drift : bool
         Odometry drift: the poses reported are drifted, with their covariance.
     effects : sequence of callables, optional
-        Extra depth effects (see :func:`noise_model.scene.add_noise`).
+        Extra depth effects (see :func:`noise_model.sim.scene.add_noise`).
     path : (K, 2) array_like, optional
         Waypoints [m]; by default a straight walk through the scene along +x.
     """
@@ -82,7 +82,7 @@ class SimulatedWalk:
             if self.n_frames is not None:
                 self._len = int(self.n_frames)
             else:
-                from noise_model.scene import walk
+                from noise_model.sim.scene import walk
 
                 self._len = len(walk(self.path, rate_hz=self.rate_hz))
         return self._len

@@ -1,0 +1,1 @@
+"""One module per ``elevmap`` subcommand; :mod:`elevmap.cli` parses the command line and calls them."""

@@ -1,0 +1,296 @@
+"""``elevmap bench``: per-frame timings of the compiled kernels against their NumPy references.
+
+Speed is measured here, never in the test suite. Each record is the median over many frames after
+warm-up (numba compilation excluded), with the NumPy reference measured in the same run on the same
+frames, so ratios are comparable across machines.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+
+import numba
+import numpy as np
+
+import noise_model as nm
+from noise_model.numba_config import resolve_threads
+from noise_model.sim.targets import camera_extrinsics, render_floor, render_planar_target
+
+__all__ = ["bench_scene", "floor_scene", "run_bench", "format_table", "GROUPS"]
+
+SIZES = ((848, 480), (424, 240))
+
+
+def bench_scene(width: int, height: int, seed: int = 0):
+    """A representative D435 frame: a board at 1.2 m (yawed 30 deg) before a wall at 2.5 m, paper noise,
+    2 % holes; returns (depth uint16, depth_scale, K, T_map_cam, pose_cov)."""
+    rng = np.random.default_rng(seed)
+    K = nm.D435.intrinsics(width, height)
+    z, theta = render_planar_target(K, width, height, 1.2, 30.0, 10.0, kind="board", width_m=1.0, height_m=0.8,
+                                    background_m=2.5)
+    z = z + rng.normal(size=z.shape) * nm.axial_sigma(z, theta)
+    d = np.round(z / 0.001).astype(np.uint16)
+    d[rng.random(d.shape) < 0.02] = 0
+    T = camera_extrinsics((0.3, 0.0, 0.45), pitch_down_deg=30.0)
+    P = np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
+    return d, 0.001, K, T, P
+
+
+def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(frames):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+        if progress is not None:
+            progress.update(1)
+    return 1e3 * float(np.median(times))
+
+
+GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame", "render")
+MAPPER_SIZES = ((1280, 720), (848, 480), (424, 240))
+
+
+def floor_scene(width: int, height: int, seed: int = 0):
+    """A legged robot's view: the floor from a D435 0.45 m up, pitched 30 deg down, paper noise, 2 % holes.
+
+    Returns (depth uint16, K, T_map_cam, pose_cov)."""
+    rng = np.random.default_rng(seed)
+    K = nm.D435.intrinsics(width, height)
+    T = camera_extrinsics((0.0, 0.0, 0.45), pitch_down_deg=30.0)
+    z, theta = render_floor(K, width, height, T, max_range_m=6.0)
+    hit = np.isfinite(z)
+    z = np.where(hit, z + rng.normal(size=z.shape) * nm.axial_sigma(np.where(hit, z, 1.0), np.where(hit, theta, 0.0)),
+                 0.0)
+    d = np.clip(np.round(np.maximum(z, 0.0) / 0.001), 0, 65535).astype(np.uint16)
+    d[rng.random(d.shape) < 0.02] = 0
+    return d, K, T, np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
+
+
+def _record(name, width, height, impl, ms, items, frames, threads, **extra):
+    r = {"name": name, "width": width, "height": height, "impl": impl, "median_ms": round(ms, 4),
+         "points_per_s": round(items / (ms * 1e-3)) if ms > 0 else None, "points": items, "frames": frames,
+         "threads": threads}
+    r.update(extra)
+    return r
+
+
+def _bench_noise(frames, reference_frames, n, bar):
+    out = []
+    for width, height in SIZES:
+        d, scale, K, T, P = bench_scene(width, height)
+        ws = nm.Workspace(height, width)
+        npts = len(nm.depth_to_map_points(d, K, T, P, depth_scale=scale, workspace=ws, nthreads=n).pixel)
+        fast = _median_ms(lambda: nm.depth_to_map_points(d, K, T, P, depth_scale=scale, workspace=ws,
+                                                         nthreads=n), frames, 5, bar)
+        ref = _median_ms(lambda: nm.depth_to_map_points_reference(d, K, T, P, depth_scale=scale),
+                         reference_frames, 1, bar)
+        out.append(_record("noise", width, height, "numba", fast, npts, frames, n))
+        out.append(_record("noise", width, height, "numpy", ref, npts, reference_frames, 1))
+    return out
+
+
+def _bench_mapper(frames, reference_frames, n, bar):
+    from ..map.elevation_map import ElevationMap
+    from ..mapper import Camera, Mapper
+
+    out = []
+    for width, height in MAPPER_SIZES:
+        d, K, T, P = floor_scene(width, height)
+        for name, cleanup in (("mapper", False), ("mapper_cleanup", True)):
+            for impl, nf in (("numba", frames), ("numpy", reference_frames)):
+                mapper = Mapper(ElevationMap(8.0, 0.04, visibility_cleanup=cleanup, nthreads=n),
+                                [Camera("d435", K, width, height)], nthreads=n)
+                k = [0]
+
+                def frame():
+                    k[0] += 1
+                    return mapper.integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=0.033 * k[0], impl=impl)
+
+                npts = frame()["points"]
+                ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
+                out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
+                                   map_cells=mapper.map.n ** 2, resolution_m=0.04))
+    return out
+
+
+def _bench_move_to(frames, n, bar):
+    from ..map.elevation_map import ElevationMap
+
+    m = ElevationMap(8.0, 0.04, nthreads=n)
+    m.data[:] = 1.0
+    k = [0]
+
+    def step():                       # one cell diagonally per call, as a walking robot's map moves
+        k[0] += 1
+        m.move_to((0.04 * k[0], 0.04 * k[0]))
+
+    ms = _median_ms(step, frames, 5, bar)
+    return [_record("move_to", m.n, m.n, "numpy", ms, 2 * m.n, frames, 1, map_cells=m.n ** 2, shift_cells=[1, 1])]
+
+
+def _bench_height_scan(frames, n, bar):
+    from ..map import queries
+    from ..map.elevation_map import ElevationMap
+
+    m = ElevationMap(8.0, 0.04, nthreads=n)
+    xs, ys = m.cell_centres()
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    m.update(np.column_stack([X.ravel(), Y.ravel(), 0.1 * np.sin(X.ravel()) * np.cos(Y.ravel())]),
+             np.full(X.size, 1e-4))
+    T = np.eye(4)
+    feet = np.array([[0.3, 0.2, -0.45], [0.3, -0.2, -0.45], [-0.3, 0.2, -0.45], [-0.3, -0.2, -0.45]])
+    scan = m.height_scan(T, "foot_rings", feet_base=feet)
+    xy = np.vstack([scan.points_map, m.height_scan(T, "legged_gym").points_map])     # 208 + 187 samples
+    out = []
+    for impl, fn, nf in (("numba", queries.height_at, frames), ("numpy", queries.height_at_reference, frames)):
+        ms = _median_ms(lambda: fn(m, xy), nf, 5, bar)
+        out.append(_record("height_scan", len(xy), 1, impl, ms, len(xy), nf, n if impl == "numba" else 1,
+                           patterns="foot_rings (4 feet) + legged_gym"))
+    return out
+
+
+def _bench_render(frames, n, bar):
+    """``render_depth`` of the stairs scene at 848x480 (numba) against its NumPy reference (1 frame)."""
+    from noise_model.sim.scene import DEFAULT_T_BASE_CAM, Scene, render_depth, render_depth_reference, walk
+
+    scene = Scene.stairs_scene()
+    K = nm.D435.intrinsics(848, 480)
+    T = walk([[0.0, 0.0], [1.0, 0.0]], scene=scene)[0] @ DEFAULT_T_BASE_CAM
+    hits = int(np.isfinite(render_depth(scene, K, 848, 480, T, nthreads=n)[0]).sum())
+    fast = _median_ms(lambda: render_depth(scene, K, 848, 480, T, nthreads=n), frames, 5, bar)
+    ref = _median_ms(lambda: render_depth_reference(scene, K, 848, 480, T), 1, 0, bar)
+    return [_record("render", 848, 480, "numba", fast, hits, frames, n, scene="stairs"),
+            _record("render", 848, 480, "numpy", ref, hits, 1, 1, scene="stairs")]
+
+
+_FIRST_FRAME = r"""
+import time
+t0 = time.perf_counter()
+import numpy as np
+from elevmap import Camera, ElevationMap, Mapper
+from elevmap.commands.bench import floor_scene
+d, K, T, P = floor_scene(848, 480)
+mapper = Mapper(ElevationMap(8.0, 0.04), [Camera("d435", K, 848, 480)])
+t1 = time.perf_counter()
+mapper.integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=0.0)
+t2 = time.perf_counter()
+print(t2 - t1, t2 - t0)
+"""
+
+
+def _bench_first_frame(bar):
+    """First frame of a fresh process, with an empty numba cache (cold) and then with it filled (warm)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    out = []
+    with tempfile.TemporaryDirectory(prefix="elevmap-numba-cache-") as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        for name in ("first_frame_cold", "first_frame_warm"):
+            t0 = time.perf_counter()
+            res = subprocess.run([sys.executable, "-c", _FIRST_FRAME], env=env, capture_output=True, text=True)
+            wall = time.perf_counter() - t0
+            if res.returncode != 0:
+                raise RuntimeError(f"{name} failed: {res.stderr.strip()[-500:]}")
+            first, since_start = (float(v) for v in res.stdout.split())
+            out.append({"name": name, "width": 848, "height": 480, "impl": "numba", "seconds": round(first, 3),
+                        "seconds_since_import": round(since_start, 3), "process_seconds": round(wall, 3)})
+            bar.update(1)
+    return out
+
+
+def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | None = None,
+              show_progress: bool = True, groups=GROUPS) -> dict:
+    """Time the compiled kernels and their NumPy references in the same run.
+
+    Parameters
+    ----------
+    frames, reference_frames : int
+        Timed calls per record for the numba kernels / the NumPy references (the mapper's NumPy
+        reference takes at most 3: it needs about a second per 848x480 frame).
+    nthreads : int, optional
+        numba threads (all by default).
+    groups : iterable of str
+        Which of ``GROUPS`` to run.
+
+    Returns
+    -------
+    dict
+        ``{"results": [{"name", "width", "height", "impl", "median_ms", "points_per_s", "frames",
+        "threads", ...}, ...], "machine": {...}}``; ``first_frame_*`` records carry ``seconds``.
+    """
+    from tqdm import tqdm
+
+    groups = tuple(groups)
+    unknown = set(groups) - set(GROUPS)
+    if unknown:
+        raise ValueError(f"unknown bench group(s) {sorted(unknown)}; choose from {', '.join(GROUPS)}")
+    n = resolve_threads(nthreads)
+    map_ref = min(reference_frames, 3)
+    total = (("noise" in groups) * len(SIZES) * (frames + reference_frames)
+             + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
+             + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
+             + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1))
+    results = []
+    with tqdm(total=total, desc="bench", unit="call", disable=not show_progress, leave=False) as bar:
+        if "noise" in groups:
+            results += _bench_noise(frames, reference_frames, n, bar)
+        if "mapper" in groups:
+            results += _bench_mapper(frames, map_ref, n, bar)
+        if "move_to" in groups:
+            results += _bench_move_to(frames, n, bar)
+        if "height_scan" in groups:
+            results += _bench_height_scan(frames, n, bar)
+        if "first_frame" in groups:
+            results += _bench_first_frame(bar)
+        if "render" in groups:
+            results += _bench_render(frames, n, bar)
+    return {"results": results, "machine": machine_info(n)}
+
+
+def machine_info(nthreads: int) -> dict:
+    cpu = platform.processor() or ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "threads": nthreads, "python": platform.python_version(),
+            "numpy": np.__version__, "numba": numba.__version__, "threading_layer": _threading_layer()}
+
+
+def _threading_layer() -> str:
+    try:
+        return numba.threading_layer()
+    except ValueError:
+        return "not initialised"
+
+
+def format_table(report: dict) -> str:
+    """A plain-text table of a bench report, with the numba/NumPy speed-up per record."""
+    rows = report["results"]
+    lines = [f"{'record':<18}{'size':>11}{'impl':>7}{'median ms':>11}{'Mpoints/s':>11}{'speed-up':>10}"]
+    for r in rows:
+        size = f"{r['width']}x{r['height']}"
+        if "seconds" in r:
+            lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{'':>11}{'':>11}   first frame {r['seconds']:.2f} s"
+                         f" (process {r['process_seconds']:.1f} s)")
+            continue
+        ref = next((x for x in rows if x["name"] == r["name"] and x["width"] == r["width"]
+                    and x["height"] == r["height"] and x["impl"] == "numpy"), None)
+        speed = f"{ref['median_ms'] / r['median_ms']:.1f}x" if ref and r["impl"] != "numpy" else ""
+        pps = "" if r.get("points_per_s") is None else f"{r['points_per_s'] / 1e6:.2f}"
+        lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{r['median_ms']:>11.3f}{pps:>11}{speed:>10}")
+    m = report["machine"]
+    lines.append(f"machine: {m['cpu']}, {m['cores']} cores, {m['threads']} numba threads ({m['threading_layer']}),"
+                 f" numba {m['numba']}, numpy {m['numpy']}")
+    return "\n".join(lines)

@@ -1,0 +1,314 @@
+"""The robot-centric 2.5-D elevation map: named float layers on a moving grid, NaN = unknown.
+
+Conventions (frames, cells, map and buffer indices) are those of :mod:`elevmap.map.grid`; the layers are
+those of :mod:`elevmap.map.layers`. The state is one float64 array ``data`` of shape (len(LAYERS), n, n)
+in *buffer* order; :meth:`ElevationMap.layer` returns a layer in map-index order (row i grows with x,
+column j with y).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from noise_model.checks import check_points
+
+from . import fusion
+from .grid import GridGeometry
+from .layers import LAYERS, POINTS, UNKNOWN_VALUES
+
+__all__ = ["ElevationMap"]
+
+
+class ElevationMap:
+    """A square, robot-centric elevation map fused from map-frame points by per-cell Kalman updates.
+
+    Parameters
+    ----------
+    length_m : float
+        Side length [m] (rounded to whole cells).
+    resolution_m : float
+        Cell size [m].
+    centre_xy : (2,) array_like
+        Initial centre in the map frame [m].
+    fusion_params : elevmap.map.fusion.FusionParams, optional
+        Gate, variance bounds, change detection and information cap.
+    visibility_cleanup : bool
+        Clear cells that rays to measured points pass below (needs ``sensor_origin_map`` in
+        :meth:`update`).
+    cleanup_stride : int
+        Cast a ray to one point in every ``cleanup_stride`` of the lowest points per cell.
+    nthreads : int, optional
+        numba threads for the kernels (numba's setting by default).
+
+    Examples
+    --------
+    >>> m = ElevationMap(length_m=8.0, resolution_m=0.04)
+    >>> m.update(points_map, height_var, stamp=0.0)           # doctest: +SKIP
+    >>> h, var = m.height_at([[1.0, 0.5]])                    # doctest: +SKIP
+    """
+
+    def __init__(self, length_m: float = 8.0, resolution_m: float = 0.04, centre_xy=(0.0, 0.0), *,
+                 fusion_params: fusion.FusionParams | None = None, visibility_cleanup: bool = True,
+                 cleanup_stride: int = 1, nthreads: int | None = None):
+        self.geometry = GridGeometry.centred(length_m, resolution_m, centre_xy)
+        n = self.geometry.n
+        self.data = np.empty((len(LAYERS), n, n))
+        self.data[:] = np.array(UNKNOWN_VALUES)[:, None, None]
+        self.fusion_params = fusion.FusionParams() if fusion_params is None else fusion_params
+        if not isinstance(self.fusion_params, fusion.FusionParams):
+            raise ValueError("fusion_params must be an elevmap.map.fusion.FusionParams")
+        self.visibility_cleanup = bool(visibility_cleanup)
+        if int(cleanup_stride) < 1:
+            raise ValueError(f"cleanup_stride must be >= 1, got {cleanup_stride!r}")
+        self.cleanup_stride = int(cleanup_stride)
+        self.nthreads = nthreads
+        self.frames = 0
+        self.last_stamp = float("nan")
+        self._ws = fusion.FusionWorkspace(n)
+
+    # -- geometry --------------------------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        """Cells per side."""
+        return self.geometry.n
+
+    @property
+    def resolution_m(self) -> float:
+        return self.geometry.resolution_m
+
+    @property
+    def length_m(self) -> float:
+        return self.geometry.length_m
+
+    @property
+    def centre_xy(self) -> np.ndarray:
+        """Centre of the map in the map frame [m]."""
+        return self.geometry.centre_xy
+
+    def cell_centres(self):
+        """(x of rows, y of columns) of the cell centres in map-index order [m]."""
+        return self.geometry.cell_centres()
+
+    # -- layers ----------------------------------------------------------------------------------
+    def layer(self, name: str) -> np.ndarray:
+        """A copy of layer ``name`` in map-index order: ``layer[i, j]``, i along +x, j along +y."""
+        return self.geometry.unwrap(self.data[self._layer_index(name)])
+
+    def layers(self) -> dict:
+        """All layers in map-index order (copies)."""
+        unwrapped = self.geometry.unwrap(self.data)
+        return {name: unwrapped[k] for k, name in enumerate(LAYERS)}
+
+    def known_layer(self, name: str) -> np.ndarray:
+        """A layer as consumers see it: :meth:`layer` with NaN wherever the cell is not known."""
+        return np.where(self.is_known(), self.layer(name), np.nan)
+
+    def is_known(self) -> np.ndarray:
+        """Boolean mask of known cells, map-index order: a height, and at least
+        ``fusion_params.min_points`` points fused into it."""
+        return self.geometry.unwrap(self._known_buffer())
+
+    def _known_buffer(self) -> np.ndarray:
+        """:meth:`is_known` in buffer order."""
+        return np.isfinite(self.data[0]) & (self.data[POINTS] >= self.fusion_params.min_points)
+
+    @staticmethod
+    def _layer_index(name: str) -> int:
+        try:
+            return LAYERS.index(name)
+        except ValueError:
+            raise ValueError(f"unknown layer {name!r}; layers are {', '.join(LAYERS)}") from None
+
+    def clear(self) -> None:
+        """Forget everything (all cells unknown)."""
+        self.data[:] = np.array(UNKNOWN_VALUES)[:, None, None]
+
+    # -- update ----------------------------------------------------------------------------------
+    def update(self, points_map, height_var, stamp: float | None = None, sensor_origin_map=None,
+               horizontal_cov=None, *, impl: str = "numba") -> dict:
+        """Fuse one frame of map-frame points.
+
+        Parameters
+        ----------
+        points_map : array_like, shape (N, 3)
+            Points in the map frame [m]; all finite (drop invalid points first).
+        height_var : array_like, shape (N,)
+            Variance of each point's height [m^2], finite and > 0.
+        stamp : float, optional
+            Time of the frame [s] (the ``time`` layer); the frame counter when None.
+        sensor_origin_map : (3,) array_like, optional
+            Camera centre in the map frame [m]; with it, visibility clean-up runs (when enabled).
+        horizontal_cov : array_like, shape (N, 3), optional
+            (Sigma_xx, Sigma_xy, Sigma_yy) of each point [m^2] for the horizontal-variance layers.
+        impl : {"numba", "numpy"}
+            The compiled kernel or its NumPy reference.
+
+        Returns
+        -------
+        dict
+            ``{"cells_updated": int, "cells_cleared": int}``.
+        """
+        p = check_points(points_map, "points_map")
+        n_pts = len(p)
+        var = np.asarray(height_var)
+        if var.shape != (n_pts,):
+            raise ValueError(f"height_var must have shape ({n_pts},), got {var.shape}")
+        if not np.issubdtype(var.dtype, np.floating):
+            raise ValueError(f"height_var must be floating point [m^2], got dtype {var.dtype}")
+        var = var.astype(np.float64, copy=False)
+        if n_pts and not (np.all(np.isfinite(var)) and float(var.min()) > 0.0):
+            raise ValueError("height_var must be finite and > 0 [m^2]")
+        if n_pts and float(var.max()) > 1e4:
+            raise ValueError(f"height_var holds values up to {float(var.max()):.3g}: variances must be in m^2")
+        hcov = None
+        if horizontal_cov is not None:
+            hcov = np.asarray(horizontal_cov, dtype=np.float64)
+            if hcov.shape != (n_pts, 3):
+                raise ValueError(f"horizontal_cov must have shape ({n_pts}, 3), got {hcov.shape}")
+            if not np.all(np.isfinite(hcov)) or (n_pts and float(min(hcov[:, 0].min(), hcov[:, 2].min())) < 0):
+                raise ValueError("horizontal_cov must be finite with non-negative variances (xx, yy)")
+        if stamp is None:
+            stamp = float(self.frames)
+        stamp = float(stamp)
+        if not math.isfinite(stamp):
+            raise ValueError(f"stamp must be finite, got {stamp!r}")
+        origin = None
+        if sensor_origin_map is not None:
+            origin = np.asarray(sensor_origin_map, dtype=np.float64)
+            if origin.shape != (3,) or not np.all(np.isfinite(origin)):
+                raise ValueError(f"sensor_origin_map must be 3 finite numbers [m], got {sensor_origin_map!r}")
+        if impl not in ("numba", "numpy"):
+            raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
+        return self._update_validated(np.ascontiguousarray(p), var, hcov, stamp, origin, impl)
+
+    def _update_validated(self, p, var, hcov, stamp: float, origin, impl: str = "numba") -> dict:
+        """:meth:`update` on inputs already validated (the mapper's hot path: kernel output is)."""
+        n_pts = len(p)
+        if impl == "numba":
+            touched = fusion.fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params, self._ws,
+                                        self.nthreads)
+        else:
+            touched = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params)
+        cleared = 0
+        if origin is not None and self.visibility_cleanup and n_pts:
+            cleared = self._visibility(origin, p, var, stamp, impl)
+        if self.fusion_params.neighbour_radius and n_pts:
+            self._neighbours(p, origin if cleared else None, impl)
+        self.frames += 1
+        self.last_stamp = stamp
+        return {"cells_updated": touched, "cells_cleared": cleared}
+
+    def _neighbours(self, points_map, origin, impl) -> None:
+        """Recompute the neighbourhood spread around the cells this frame touched (its points' bounding
+        box, with the camera's position when visibility cleared cells on the rays)."""
+        from . import neighbours
+
+        lo, hi = points_map[:, :2].min(axis=0), points_map[:, :2].max(axis=0)
+        if origin is not None:
+            lo, hi = np.minimum(lo, origin[:2]), np.maximum(hi, origin[:2])
+        raw, _ = self.geometry.map_index(np.array([lo, hi]))
+        if np.any(raw[1] < 0) or np.any(raw[0] >= self.geometry.n):
+            return                                  # the frame lies wholly outside the window
+        ij = np.clip(raw, 0, self.geometry.n - 1)
+        rows, cols = (ij[0, 0], ij[1, 0]), (ij[0, 1], ij[1, 1])
+        if impl == "numba":
+            neighbours.update_neighbour_spread(self.data, self.geometry, self.fusion_params.neighbour_radius, rows,
+                                               cols, self.nthreads, self.fusion_params.neighbour_estimator)
+        else:
+            neighbours.update_neighbour_spread_reference(self.data, self.geometry,
+                                                         self.fusion_params.neighbour_radius, rows, cols,
+                                                         self.fusion_params.neighbour_estimator)
+
+    def _visibility(self, origin, points_map, height_var, stamp, impl) -> int:
+        from . import visibility
+
+        fn = visibility.visibility_cleanup if impl == "numba" else visibility.visibility_cleanup_reference
+        return fn(self.data, self.geometry, origin, points_map, stamp, stride=self.cleanup_stride,
+                  nthreads=self.nthreads, height_var=height_var)
+
+    # -- robot-centric motion --------------------------------------------------------------------
+    def move_to(self, xy) -> dict:
+        """Re-centre the map at the lattice point nearest ``xy`` [m] (map frame), without copying.
+
+        Cells that stay keep their data and their buffer slot; cells that enter become unknown.
+
+        Returns
+        -------
+        dict
+            ``{"shift_cells": (dx, dy), "cleared_rows": int, "cleared_cols": int}``.
+        """
+        new = self.geometry.moved_to(xy)
+        rows, cols = self.geometry.uncovered_by_move(new)
+        unknown = np.array(UNKNOWN_VALUES)
+        if len(rows):
+            self.data[:, rows, :] = unknown[:, None, None]
+        if len(cols):
+            self.data[:, :, cols] = unknown[:, None, None]
+        shift = (new.gx0 - self.geometry.gx0, new.gy0 - self.geometry.gy0)
+        self.geometry = new
+        return {"shift_cells": shift, "cleared_rows": int(len(rows)), "cleared_cols": int(len(cols))}
+
+    def known_fraction(self) -> float:
+        """Fraction of known cells."""
+        return float(self._known_buffer().mean())
+
+    # -- prediction and fused map (elevmap.map.prediction) -------------------------------------------
+    def predict(self, relative_pose_cov=None, T_map_base=None, dt=None, time_variance_rate: float = 0.0, *,
+                impl: str = "numba") -> dict:
+        """Process-noise step before a frame: see :func:`elevmap.map.prediction.predict`.
+
+        ``impl="numpy"`` runs the NumPy reference. Returns ``{"cells_expired": int}``.
+        """
+        from . import prediction
+
+        if impl not in ("numba", "numpy"):
+            raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
+        fn = prediction.predict if impl == "numba" else prediction.predict_reference
+        return fn(self, relative_pose_cov, T_map_base, dt, time_variance_rate)
+
+    def fused_map(self, *, impl: str = "numba") -> dict:
+        """EM's ellipse-weighted fused layers, map-index order: see :func:`elevmap.map.prediction.fused_map`."""
+        from . import prediction
+
+        if impl not in ("numba", "numpy"):
+            raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
+        return prediction.fused_map(self) if impl == "numba" else prediction.fused_map_reference(self)
+
+    # -- queries and files (elevmap.map.queries) -----------------------------------------------------
+    def height_at(self, xy):
+        """Height [m] and variance [m^2] at map-frame points (2,) or (M, 2); see :func:`elevmap.map.queries.height_at`."""
+        from . import queries
+
+        return queries.height_at(self, xy)
+
+    def height_scan(self, T_map_base, pattern="legged_gym", feet_base=None, fill=float("nan")):
+        """Heights on a scan pattern around the base; see :func:`elevmap.map.queries.height_scan`."""
+        from . import queries
+
+        return queries.height_scan(self, T_map_base, pattern=pattern, feet_base=feet_base, fill=fill)
+
+    def to_grid_map(self, layers=None, *, frame_id: str = "map") -> dict:
+        """grid_map message content; see :func:`elevmap.map.queries.to_grid_map`."""
+        from . import queries
+
+        return queries.to_grid_map(self, layers, frame_id=frame_id)
+
+    def save(self, path) -> None:
+        """Write the map to one .npz file atomically; see :func:`elevmap.map.queries.save`."""
+        from . import queries
+
+        queries.save(self, path)
+
+    @classmethod
+    def load(cls, path) -> "ElevationMap":
+        """Read a map written by :meth:`save`; see :func:`elevmap.map.queries.load`."""
+        from . import queries
+
+        return queries._load(path, cls)
+
+    def __repr__(self) -> str:
+        c = self.centre_xy
+        return (f"ElevationMap({self.n}x{self.n} cells of {self.resolution_m} m, centre ({c[0]:.2f}, {c[1]:.2f}), "
+                f"{100 * self.known_fraction():.1f}% known, {int(self.data[POINTS].sum())} points fused)")

@@ -1,0 +1,421 @@
+"""Neighbourhood spread: the disagreement of a cell's neighbours, added to its variance.
+
+A cell's fused variance P (``variance`` minus the larger of its two spreads) says how well its points pin down their mean
+if they are independent, unbiased and land in the right cell. Near a step edge and in the far field of
+a D435 they often do not: the depth noise along a grazing ray is decimetres, so points of one level
+land in cells of the other (measured with ``elevmap compare``: cells within 0.4 m of an edge hold
+errors of 0.1-0.2 m with P of (3 mm)^2). Such errors are not visible inside a cell, whose points agree
+with each other, but they are visible between cells: neighbouring heights scatter far more than their
+variances allow.
+
+For every known cell c, over the known cells j within ``radius`` cells (a (2 radius + 1)^2 window,
+c included) with weights w_j = 1 / P_j, the DerSimonian-Laird random-effects estimator
+
+    m = sum w_j h_j / sum w_j,   Q = sum w_j (h_j - m)^2,
+    tau_n^2 = max(Q - (k - 1), 0) / (S1 - S2 / S1),   S1 = sum w_j, S2 = sum w_j^2,
+
+(k the number of known cells in the window; 0 when k < 2) is the variance of the true heights about
+the window's mean beyond the cells' own variances. By default (``estimator="paule_mandel"``) it is
+refined to the Paule-Mandel estimator, the root of the generalised Q statistic
+
+    Q(tau^2) = sum w_j (h_j - m)^2 = k - 1,   w_j = 1 / (P_j + tau^2),   m = sum w_j h_j / sum w_j,
+
+solved by safeguarded Newton steps on 1 / Q (linear in tau^2 when the P_j are equal) from the cell's
+last root (a warm start) or the DerSimonian-Laird value (Q decreases in tau^2; dQ/dtau^2 =
+-sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
+Why: a D435 map's P span four decades (near cells (1 mm)^2, far cells centimetres), and
+DerSimonian-Laird's weights are then the precise cells': in a window of a floor and a box top it sees
+the spread as the few precise cells do, and falls below half the true spread in one window in four
+(``tests/test_neighbours.py``), a cell beside a box made confident. Paule-Mandel weighs the cells by
+1 / (P_j + tau^2), evenly once the spread exceeds their own variances (Veroniki et al. 2016, Res. Synth.
+Methods 7: 55-79, recommend it over DerSimonian-Laird). Measured (``elevmap compare``, 60 frames,
+seed 0, paper mapper, stairs / boxes, (1 mm)^2 floor): 1-sigma / 2-sigma coverage 0.714 / 0.955 and
+0.705 / 0.922 with DerSimonian-Laird, 0.721 / 0.958 and 0.720 / 0.934 with Paule-Mandel; mean NLL
+-2.97 / -2.41 -> -2.95 / -2.43. It costs a gather of each cell's window and a few Newton steps: the
+mapper 2.7 ms per frame (``elevmap bench``, 848x480: 8.3 -> 11.0 ms). It is stored as ``neighbour_spread`` and the cell's
+variance becomes P + max(spread, neighbour_spread): the height at the centre of a cell in a window
+whose cells disagree is uncertain by that disagreement. The fusion's gate and prior work on the
+variance without it (:func:`elevmap.map.fusion._nbr_excess`; the visibility clean-up too); a new point's
+weight 1 / (sigma^2 + tau^2) takes tau^2 = max(spread, neighbour_spread), so the heights depend on it
+through the weights of later points only.
+
+The window sums are separable (along the rows, then down the columns); heights enter them relative to
+the mean height of the map's known cells (sampled every 8th row and column), so that the sums stay well conditioned however high the map
+lies. Cells with a non-finite or non-positive P contribute nothing. Only the window of cells touched
+by a frame (plus ``radius``) is recomputed: the others' neighbourhoods did not change.
+
+Measured (``elevmap compare``, 60 frames, seed 0; the README's calibration table): see
+``FusionParams.neighbour_radius``. What it cannot see: a band of cells that agree with each other and
+are all wrong (a sliver of a step's top binned into the floor cell beside it, with nothing of the floor
+seen around it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from noise_model.numba_config import JIT, resolve_threads, threads
+
+from .layers import ELEVATION, NEIGHBOUR_SPREAD, SPREAD, VARIANCE
+
+__all__ = ["update_neighbour_spread", "update_neighbour_spread_reference", "fused_variance"]
+
+PM_TOL = 1e-10
+PM_MAX_STEPS = 100
+ESTIMATORS = ("paule_mandel", "dersimonian_laird")
+
+
+def fused_variance(data) -> np.ndarray:
+    """P = variance - max(spread, neighbour_spread) per cell (NaN spreads count as 0), buffer order.
+
+    Parameters
+    ----------
+    data : ndarray, shape (len(LAYERS), n, n)
+
+    Returns
+    -------
+    ndarray, shape (n, n) [m^2]
+        NaN where the cell is unknown.
+    """
+    s = np.where(data[SPREAD] > 0, data[SPREAD], 0.0)
+    nb = np.where(data[NEIGHBOUR_SPREAD] > 0, data[NEIGHBOUR_SPREAD], 0.0)
+    return data[VARIANCE] - np.maximum(s, nb)
+
+
+@njit(**JIT)
+def _cell(data, bi, bj):
+    """(height, fused variance P, spread) of buffer cell (bi, bj); NaN spreads count as 0."""
+    s = data[SPREAD, bi, bj]
+    s = s if s > 0.0 else 0.0
+    nb = data[NEIGHBOUR_SPREAD, bi, bj]
+    nb = nb if nb > 0.0 else 0.0
+    return data[ELEVATION, bi, bj], data[VARIANCE, bi, bj] - max(s, nb), s
+
+
+@njit(**JIT)
+def _paule_mandel_step(y, p, k, t, w):
+    """One evaluation at tau^2 = t over k cells (heights y relative to a reference [m], variances p
+    [m^2]): Q(t) = sum w (y - m)^2 and D = sum w^2 (y - m)^2 = -dQ/dt, w = 1 / (p + t) (kept in the
+    buffer w), in two passes (the mean first) so that Q keeps its precision where w reaches 1e6."""
+    s1 = 0.0
+    sy = 0.0
+    for q in range(k):
+        wq = 1.0 / (p[q] + t)
+        w[q] = wq
+        s1 += wq
+        sy += wq * y[q]
+    m = sy / s1
+    qq = 0.0
+    dd = 0.0
+    for q in range(k):
+        d = y[q] - m
+        e = w[q] * d * d
+        qq += e
+        dd += w[q] * e
+    return qq, dd
+
+
+@njit(**JIT)
+def _paule_mandel(y, p, k, t0, w):
+    """Paule-Mandel tau^2 [m^2] of k cells: the root of Q(t) = sum w (y - m)^2 = k - 1, w = 1 / (p + t),
+    from t0 (the cell's last root, else the DerSimonian-Laird value) by Newton's method on
+    1 / Q(t) = 1 / (k - 1), which is linear in t when the p are equal (one step then;
+    t += Q (Q - (k - 1)) / ((k - 1) D)), kept inside a bracket [lo, hi] that it bisects when a step
+    leaves it. Q decreases in t; the caller ensures Q(0) > k - 1, so the root is positive. Converged
+    when |Q - (k - 1)| <= PM_TOL (k - 1) or the bracket is below 1e-12 of t (at most PM_MAX_STEPS
+    evaluations)."""
+    lo = 0.0
+    hi = np.inf
+    t = t0
+    km1 = k - 1.0
+    for _ in range(PM_MAX_STEPS):
+        qq, dd = _paule_mandel_step(y, p, k, t, w)
+        f = qq - km1
+        if abs(f) <= PM_TOL * km1:
+            break
+        if f > 0.0:
+            lo = t
+        else:
+            hi = t
+        if hi - lo <= 1e-12 * t:
+            break
+        tn = t + qq * f / (km1 * dd) if dd > 0.0 else np.inf
+        if not (tn > lo and tn < hi):
+            tn = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
+        t = tn
+    return t
+
+
+@njit(**JIT)
+def _paule_mandel_cell(Hl, Pl, ii, c, r, t0, hw, pw, ww):
+    """Gather the counting cells of the window whose top-left is (ii, c) in the padded copies Hl, Pl
+    (heights relative to the reference, P; P = inf where a cell does not count) into hw, pw (branch
+    free: every cell is written, the next one overwrites it if it does not count) and return their
+    Paule-Mandel tau^2, started at t0."""
+    k = 0
+    for a in range(ii, ii + 2 * r + 1):
+        for b in range(c, c + 2 * r + 1):
+            hw[k] = Hl[a, b]
+            pw[k] = Pl[a, b]
+            k += Pl[a, b] < np.inf
+    return _paule_mandel(hw, pw, k, t0, ww)
+
+
+@njit(parallel=True, **JIT)
+def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
+    """Map rows i0..i1, columns j0..j1 (inclusive, map index); buffer start (sx, sy); heights taken
+    relative to ref [m]. The window sums are separable: along each row first (pass A, over the rows the
+    windows reach), then down the columns (pass B); rows and columns beyond the map are zero padding.
+    Each cell writes only itself (pass B reads only A, pass A's copies of the heights and P, and its own
+    layers): race-free, and the same whatever the thread count."""
+    n = data.shape[1]
+    r = radius
+    C = j1 - j0 + 1
+    R = i1 - i0 + 1 + 2 * r                # padded rows of A: map rows i0 - r .. i1 + r
+    A = np.zeros((5, R, C))
+    Hl = np.zeros((R, C + 2 * r))            # the heights and P of the padded window, read by the
+    Pl = np.full((R, C + 2 * r), np.inf)     # Paule-Mandel solve (P = inf: the cell does not count)
+    for ii in prange(R):
+        i = i0 - r + ii
+        if i < 0 or i >= n:
+            continue                         # beyond the map: zero
+        bi = i + sx
+        if bi >= n:
+            bi -= n
+        q = np.zeros((5, C + 2 * r))         # map columns j0 - r .. j1 + r
+        for c in range(C + 2 * r):
+            j = j0 - r + c
+            if j < 0 or j >= n:
+                continue
+            bj = j + sy
+            if bj >= n:
+                bj -= n
+            h, p, _ = _cell(data, bi, bj)
+            if np.isnan(h) or not (p > 0.0 and p < np.inf):
+                continue
+            w = 1.0 / p
+            d = h - ref
+            q[0, c] = w
+            q[1, c] = w * w
+            q[2, c] = w * d
+            q[3, c] = w * d * d
+            q[4, c] = 1.0
+            Hl[ii, c] = d
+            Pl[ii, c] = p
+        for f in range(5):
+            for t in range(2 * r + 1):
+                for c in range(C):
+                    A[f, ii, c] += q[f, c + t]
+    for i in prange(i0, i1 + 1):
+        bi = i + sx
+        if bi >= n:
+            bi -= n
+        B = np.zeros((5, C))
+        hw = np.empty((2 * r + 1) ** 2)
+        pw = np.empty((2 * r + 1) ** 2)
+        ww = np.empty((2 * r + 1) ** 2)
+        for t in range(2 * r + 1):
+            for f in range(5):
+                for c in range(C):
+                    B[f, c] += A[f, i - i0 + t, c]
+        for c in range(C):
+            bj = j0 + c + sy
+            if bj >= n:
+                bj -= n
+            h0, p0, s = _cell(data, bi, bj)
+            if np.isnan(h0) or not (p0 > 0.0 and p0 < np.inf):
+                continue
+            s1 = B[0, c]
+            s2 = B[1, c]
+            sh = B[2, c]
+            shh = B[3, c]
+            k = B[4, c]
+            tau2 = 0.0
+            if k >= 2.0:
+                qq = shh - sh * sh / s1
+                den = s1 - s2 / s1
+                if den > 0.0 and qq > k - 1.0:
+                    tau2 = (qq - (k - 1.0)) / den
+                    if paule_mandel:
+                        prev = data[NEIGHBOUR_SPREAD, bi, bj]        # the last frame's root: a warm start
+                        t0 = prev if (prev > 0.0 and prev < np.inf) else tau2
+                        tau2 = _paule_mandel_cell(Hl, Pl, i - i0, c, r, t0, hw, pw, ww)
+            data[NEIGHBOUR_SPREAD, bi, bj] = tau2
+            data[VARIANCE, bi, bj] = p0 + max(s, tau2)
+
+
+def _window(geometry, rows, cols, radius):
+    n = geometry.n
+    i0, i1 = max(int(rows[0]) - radius, 0), min(int(rows[1]) + radius, n - 1)
+    j0, j1 = max(int(cols[0]) - radius, 0), min(int(cols[1]) + radius, n - 1)
+    return i0, i1, j0, j1
+
+
+def _check(data, geometry, rows, cols, radius, estimator):
+    n = geometry.n
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"estimator must be one of {ESTIMATORS}, got {estimator!r}")
+    if not isinstance(data, np.ndarray) or data.dtype != np.float64 or data.ndim != 3 or data.shape[1:] != (n, n):
+        raise ValueError(f"data must be a float64 layer stack of shape (L, {n}, {n})")
+    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or not 1 <= radius <= 10:
+        raise ValueError(f"radius must be an integer in [1, 10] cells, got {radius!r}")
+    rows = (0, n - 1) if rows is None else rows
+    cols = (0, n - 1) if cols is None else cols
+    for name, r in (("rows", rows), ("cols", cols)):
+        if len(r) != 2 or not (0 <= int(r[0]) <= int(r[1]) <= n - 1):
+            raise ValueError(f"{name} must be (first, last) map indices within [0, {n - 1}], got {r!r}")
+    return rows, cols
+
+
+def update_neighbour_spread(data, geometry, radius: int = 2, rows=None, cols=None, nthreads=None,
+                            estimator: str = "paule_mandel") -> None:
+    """Recompute ``neighbour_spread`` and ``variance`` of the known cells in a window, in place.
+
+    Parameters
+    ----------
+    data : ndarray, shape (len(LAYERS), n, n)
+        The map's layers (buffer order).
+    geometry : GridGeometry
+    radius : int
+        Half-width of the neighbourhood [cells] (1 to 10).
+    rows, cols : (int, int), optional
+        First and last map index (inclusive) of the cells whose neighbourhoods changed (default the
+        whole map); the cells within ``radius`` of them are recomputed.
+    nthreads : int, optional
+        numba threads.
+    estimator : {"paule_mandel", "dersimonian_laird"}
+        The estimator of tau_n^2 (module docstring).
+    """
+    rows, cols = _check(data, geometry, rows, cols, radius, estimator)
+    i0, i1, j0, j1 = _window(geometry, rows, cols, radius)
+    sx, sy = geometry.start_index
+    n = resolve_threads(nthreads)
+    with threads(n):
+        _neighbour_kernel(data, int(sx), int(sy), i0, i1, j0, j1, int(radius), _reference_height(data),
+                          estimator == "paule_mandel")
+
+
+def _reference_height(data) -> float:
+    """A height near the map's [m] (the mean of the known cells of every 8th row and column, else of all,
+    0 for an empty map): heights enter the sums relative to it, so that w (h - ref)^2 stays small where
+    the map lies far above its origin."""
+    for h in (data[ELEVATION, ::8, ::8], data[ELEVATION]):
+        known = ~np.isnan(h)
+        if known.any():
+            return float(np.mean(h[known]))
+    return 0.0
+
+
+def _paule_mandel_reference(y, p, cells, r, t0):
+    """NumPy reference of the kernel's Paule-Mandel solve: the same safeguarded Newton steps, for all
+    cells at once.
+
+    Parameters
+    ----------
+    y, p : ndarray, shape (n, n)
+        Heights relative to the reference [m] and fused variances [m^2] in map order (p = inf where a
+        cell does not count).
+    cells : ndarray of int, shape (m, 2)
+        Map indices of the cells to solve (their DerSimonian-Laird tau^2 is positive).
+    r : int
+    t0 : ndarray, shape (m,)
+        Where to start [m^2]: the cell's last root, else its DerSimonian-Laird tau^2.
+
+    Returns
+    -------
+    ndarray, shape (m,) [m^2]
+    """
+    n = y.shape[0]
+    offs = np.arange(-r, r + 1)
+    a = cells[:, 0, None, None] + offs[None, :, None]            # (m, 2r+1, 1)
+    b = cells[:, 1, None, None] + offs[None, None, :]            # (m, 1, 2r+1)
+    inside = (a >= 0) & (a < n) & (b >= 0) & (b < n)
+    ac, bc = np.clip(a, 0, n - 1), np.clip(b, 0, n - 1)
+    Y = np.where(inside, y[ac, bc], 0.0).reshape(len(cells), -1)
+    Pw = np.where(inside, p[ac, bc], np.inf).reshape(len(cells), -1)
+    Y = np.where(np.isfinite(Pw), Y, 0.0)
+    km1 = np.isfinite(Pw).sum(axis=1) - 1.0
+    t = t0.astype(float).copy()
+    lo = np.zeros_like(t)
+    hi = np.full_like(t, np.inf)
+    active = np.ones(len(t), dtype=bool)
+    for _ in range(PM_MAX_STEPS):
+        idx = np.flatnonzero(active)
+        if not len(idx):
+            break
+        w = 1.0 / (Pw[idx] + t[idx, None])
+        m = np.sum(w * Y[idx], axis=1) / np.sum(w, axis=1)
+        e = w * (Y[idx] - m[:, None]) ** 2
+        qq = np.sum(e, axis=1)
+        f = qq - km1[idx]
+        dd = np.sum(w * e, axis=1)
+        ti = t[idx]
+        done = np.abs(f) <= PM_TOL * km1[idx]
+        lo_i = np.where(f > 0, ti, lo[idx])
+        hi_i = np.where(f > 0, hi[idx], ti)
+        done |= hi_i - lo_i <= 1e-12 * ti
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tn = np.where(dd > 0, ti + qq * f / (km1[idx] * dd), np.inf)
+        bad = ~((tn > lo_i) & (tn < hi_i))
+        tn = np.where(bad, np.where(np.isfinite(hi_i), 0.5 * (lo_i + hi_i), 2.0 * ti), tn)
+        lo[idx], hi[idx] = lo_i, hi_i
+        t[idx] = np.where(done, ti, tn)
+        active[idx] = ~done
+    return t
+
+
+def update_neighbour_spread_reference(data, geometry, radius: int = 2, rows=None, cols=None,
+                                      estimator: str = "paule_mandel") -> None:
+    """NumPy reference of :func:`update_neighbour_spread`: the same separable window sums, in map order,
+    and the same Paule-Mandel steps."""
+    rows, cols = _check(data, geometry, rows, cols, radius, estimator)
+    i0, i1, j0, j1 = _window(geometry, rows, cols, radius)
+    n = geometry.n
+    r = radius
+    ref = _reference_height(data)
+    P = geometry.unwrap(fused_variance(data))
+    H = geometry.unwrap(data[ELEVATION])
+    ok = ~np.isnan(H) & (P > 0) & (P < np.inf)
+    w = np.where(ok, 1.0 / np.where(ok, P, 1.0), 0.0)
+    d = np.where(ok, H - ref, 0.0)
+    q = np.stack([w, w * w, w * d, w * d * d, ok.astype(float)])
+    # the rows and columns the windows reach (zero beyond them and beyond the map), summed along the
+    # rows, then down the columns, taps in the kernel's order
+    a0, a1 = max(i0 - r, 0), min(i1 + r, n - 1)
+    b0, b1 = max(j0 - r, 0), min(j1 + r, n - 1)
+    q[:, :a0] = 0.0
+    q[:, a1 + 1:] = 0.0
+    q[:, :, :b0] = 0.0
+    q[:, :, b1 + 1:] = 0.0
+    qp = np.zeros((5, n, n + 2 * r))
+    qp[:, :, r:r + n] = q
+    A = np.zeros((5, n, n))
+    for t in range(2 * r + 1):
+        A += qp[:, :, t:t + n]
+    Ap = np.zeros((5, n + 2 * r, n))
+    Ap[:, r:r + n] = A
+    B = np.zeros((5, n, n))
+    for t in range(2 * r + 1):
+        B += Ap[:, t:t + n]
+    s1, s2, sh, shh, k = B
+    with np.errstate(invalid="ignore", divide="ignore"):
+        qq = shh - sh * sh / s1
+        den = s1 - s2 / s1
+        positive = (k >= 2) & (den > 0) & (qq > k - 1)
+        tau2 = np.where(positive, (qq - (k - 1)) / den, 0.0)
+    region = np.zeros((n, n), dtype=bool)
+    region[i0:i1 + 1, j0:j1 + 1] = True
+    if estimator == "paule_mandel":
+        cells = np.argwhere(region & ok & positive)
+        if len(cells):
+            ci, cj = cells[:, 0], cells[:, 1]
+            prev = geometry.unwrap(data[NEIGHBOUR_SPREAD])[ci, cj]          # the last root: a warm start
+            t0 = np.where((prev > 0) & (prev < np.inf), prev, tau2[ci, cj])
+            tau2[ci, cj] = _paule_mandel_reference(H - ref, np.where(ok, P, np.inf), cells, r, t0)
+    upd = geometry.wrap(region & ok)
+    tau2 = geometry.wrap(tau2)
+    s = np.where(data[SPREAD] > 0, data[SPREAD], 0.0)
+    Pb = geometry.wrap(P)
+    data[NEIGHBOUR_SPREAD] = np.where(upd, tau2, data[NEIGHBOUR_SPREAD])
+    data[VARIANCE] = np.where(upd, Pb + np.maximum(s, tau2), data[VARIANCE])

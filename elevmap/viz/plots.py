@@ -1,0 +1,159 @@
+"""PNG figures of reports with matplotlib (imported lazily, ``Agg`` backend; no display needed).
+
+The characterisation figures of Ahn et al. (2019), drawn from an ``elevmap characterize`` report:
+
+* :func:`plot_systematic_error`: Fig. 2, the RMS error of the mean of the frames against the known
+  distance, with the single-frame plane-fit residual and the paper's equation (1);
+* :func:`plot_axial_variance`: Fig. 3, the axial variance against distance per angle, with the
+  fitted and the paper's curves;
+* :func:`plot_plane_distance`: Fig. 4, each pixel's distance to the fitted plane;
+* :func:`plot_lateral_noise`: the lateral noise of left and right edges per capture, with sigma_L,
+  sigma_R and the paper's values.
+
+Every file is written atomically (:func:`elevmap.fileio.atomic_output`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..fileio import atomic_output
+
+__all__ = ["plot_systematic_error", "plot_axial_variance", "plot_plane_distance", "plot_lateral_noise"]
+
+_DPI = 110
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    with atomic_output(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=_DPI, bbox_inches="tight")
+    return path
+
+
+def _series(report):
+    from ..commands.characterize import figure_series
+
+    return figure_series(report)
+
+
+def plot_systematic_error(report: dict, path) -> Path:
+    """Fig. 2: systematic (RMS) error of the mean of the frames vs distance, with eq. (1) [mm]."""
+    plt = _pyplot()
+    s = _series(report)["fig2"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    try:
+        d = np.asarray(s["distance_m"], dtype=float)
+        if d.size:
+            def mm(v):
+                return 1000.0 * np.array([np.nan if x is None else x for x in v], dtype=float)
+
+            ax.plot(d, mm(s["rms_error_m"]), "o-", label="RMS error of the mean of the frames vs known distance")
+            ax.plot(d, mm(s["residual_m"]), "s--", label="single-frame plane-fit residual (std)")
+            ax.plot(d, mm(s["eq1_m"]), "k-", label="eq. (1): e = d^2 s / (f b), s = 0.08 px")
+            ax.legend(fontsize=8)
+        else:
+            ax.text(0.5, 0.5, "no capture measured", ha="center", va="center", transform=ax.transAxes)
+        ax.set_xlabel("distance [m]")
+        ax.set_ylabel("error [mm]")
+        t = s["theta_deg"]
+        ax.set_title(f"Fig. 2: systematic error ({s['kind']} captures"
+                     + ("" if t is None else f", {t:.0f} deg") + ")")
+        ax.grid(True, alpha=0.3)
+        return _save(fig, path)
+    finally:
+        plt.close(fig)
+
+
+def plot_axial_variance(report: dict, path) -> Path:
+    """Fig. 3: axial variance sigma_z^2 vs depth per angle; fitted (solid) and paper (dashed) curves."""
+    plt = _pyplot()
+    s = _series(report)["fig3"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.6))
+    try:
+        colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+        zc = np.asarray(s["curve_z_m"])
+        for k, a in enumerate(s["angles_deg"]):
+            c = colors[k % len(colors)]
+            z, v = s["points"][a]
+            ax.plot(z, 1e6 * np.asarray(v), "o", color=c, ms=4, label=f"{a} deg")
+            if a in s["fitted"]:
+                ax.plot(zc, 1e6 * np.asarray(s["fitted"][a]), "-", color=c, lw=1.2)
+            ax.plot(zc, 1e6 * np.asarray(s["paper"][a]), "--", color=c, lw=0.8)
+        ax.set_yscale("log")
+        ax.set_xlabel("depth z [m]")
+        ax.set_ylabel("axial variance sigma_z^2 [mm^2]")
+        ax.set_title("Fig. 3: axial variance (points), fit (solid), paper (dashed)")
+        ax.grid(True, which="both", alpha=0.3)
+        if s["angles_deg"]:
+            ax.legend(fontsize=8, ncol=2)
+        return _save(fig, path)
+    finally:
+        plt.close(fig)
+
+
+def plot_plane_distance(records, path, n_max: int = 6) -> Path:
+    """Fig. 4: per-pixel distance of the mean of the frames to the fitted plane [mm], a few captures."""
+    from ..commands.characterize import plane_distance_panels
+
+    plt = _pyplot()
+    panels = plane_distance_panels(records, n_max)
+    n = max(1, len(panels))
+    cols = min(3, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.0 * rows), squeeze=False)
+    try:
+        if not panels:
+            axes[0, 0].text(0.5, 0.5, "no capture measured", ha="center", va="center")
+        for k, ax in enumerate(axes.ravel()):
+            ax.set_axis_off()
+            if k >= len(panels):
+                continue
+            cid, img, rng = panels[k]
+            e = 1000.0 * rng
+            im = ax.imshow(1000.0 * img, cmap="RdBu_r", vmin=-e, vmax=e, interpolation="nearest")
+            ax.set_title(cid, fontsize=9)
+            fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label="mm")
+        fig.suptitle("Fig. 4: distance of each pixel (mean of the frames) to the fitted plane\n"
+                     "(colour range: 98th percentile over the central region; the moving edges saturate)")
+        return _save(fig, path)
+    finally:
+        plt.close(fig)
+
+
+def plot_lateral_noise(report: dict, path) -> Path:
+    """Lateral noise per capture (left and right edges) vs distance, with sigma_L, sigma_R [mm]."""
+    plt = _pyplot()
+    s = _series(report)["lateral"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    try:
+        for side, c, key, pkey in (("left", "C0", "sigma_L_m", "paper_sigma_L_m"),
+                                   ("right", "C3", "sigma_R_m", "paper_sigma_R_m")):
+            d, v = s[side]
+            ax.plot(d, 1000.0 * np.asarray(v, dtype=float), "o", color=c, ms=4, label=f"{side} edge, per capture")
+            d, v = s[f"{side}_unused"]
+            if d:
+                ax.plot(d, 1000.0 * np.asarray(v, dtype=float), "o", mfc="none", color=c, ms=4,
+                        label=f"{side} edge, not used (sigma_z > 20% of z)")
+            if s[key] is not None:
+                ax.axhline(1000.0 * s[key], color=c, lw=1.5, label=f"{key[:7]} (90th pct): {1000 * s[key]:.1f} mm")
+            ax.axhline(1000.0 * s[pkey], color=c, lw=0.8, ls="--", label=f"paper {key[:7]}: {1000 * s[pkey]:.1f} mm")
+        ax.set_xlabel("distance [m]")
+        ax.set_ylabel("lateral noise [mm]")
+        ax.set_title("Lateral noise: spread of edge pixels about the edge's line")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+        return _save(fig, path)
+    finally:
+        plt.close(fig)

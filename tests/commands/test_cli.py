@@ -1,0 +1,97 @@
+"""The command line: subcommands, JSON reports, errors; and the package layering rules."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from elevmap.cli import main
+
+
+def test_bench_writes_one_record_per_kernel_size_and_implementation(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--only", "noise,move_to,height_scan", "--frames", "3", "--reference-frames", "1",
+                 "--json", str(out), "--no-progress"]) == 0
+    report = json.loads(out.read_text())
+    keys = {(r["name"], r["width"], r["height"], r["impl"]) for r in report["results"]}
+    assert keys == {("noise", 848, 480, "numba"), ("noise", 848, 480, "numpy"),
+                    ("noise", 424, 240, "numba"), ("noise", 424, 240, "numpy"),
+                    ("move_to", 200, 200, "numpy"), ("height_scan", 395, 1, "numba"), ("height_scan", 395, 1, "numpy")}
+    for r in report["results"]:
+        assert r["median_ms"] > 0 and r["points_per_s"] > 0
+    for r in report["results"]:
+        if r["name"] == "noise":
+            assert r["points"] > 0.9 * r["width"] * r["height"] * 0.5
+    assert "speed-up" in capsys.readouterr().out
+    assert [p.name for p in tmp_path.iterdir()] == ["bench.json"]
+
+
+def test_bad_arguments_are_reported_not_raised(capsys):
+    assert main(["bench", "--frames", "0"]) == 2
+    assert "must be >= 1" in capsys.readouterr().err
+    assert main(["bench", "--only", "nonsense"]) == 2
+    assert "unknown bench group" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["no-such-command"])
+
+
+def test_characterize_from_the_command_line(tmp_path, capsys):
+    from elevmap.commands.simulate import simulate_capture_set
+
+    # six settings of the paper's grid, 4 frames each: enough for the command's plumbing (the fit's
+    # accuracy is tested in test_characterize.py)
+    grid = [(d, y) for d in (0.6, 1.0, 1.4) for y in (0.0, 30.0)]
+    simulate_capture_set(tmp_path / "set", grid=grid, n_frames=4, show_progress=False)
+    out = tmp_path / "report.json"
+    code = main(["characterize", str(tmp_path / "set"), "--json", str(out), "--figures", str(tmp_path / "figs"),
+                 "--no-progress"])
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert len(report["fit"]["coefficients"]) == 4 and len(report["fit"]["stderr"]) == 4
+    assert {c["id"] for c in report["captures"]} == {f"board_z{d:.2f}_y{int(y):02d}" for d, y in grid}
+    assert (tmp_path / "report.model.json").exists() and any((tmp_path / "figs").glob("*.png"))
+    assert "sigma_z" in capsys.readouterr().out
+    assert main(["characterize", str(tmp_path / "set"), "--json", str(out), "--no-progress"]) == 2   # no overwrite
+    assert "exists" in capsys.readouterr().err
+
+
+def test_characterize_help_explains_the_recording_protocol():
+    res = subprocess.run([sys.executable, "-m", "elevmap.cli", "characterize", "--help"], capture_output=True, text=True)
+    assert res.returncode == 0
+    for words in ("tripod", "laser distance meter", "0.4 to 2.1 m", "100 frames", "captures.json"):
+        assert words in res.stdout
+
+
+def test_console_script_has_help():
+    res = subprocess.run([sys.executable, "-m", "elevmap.cli", "--help"], capture_output=True, text=True)
+    assert res.returncode == 0
+    for cmd in ("demo", "bench"):
+        assert cmd in res.stdout
+
+
+def test_noise_model_imports_no_io_or_visualisation():
+    code = ("import sys, noise_model; bad = [m for m in ('elevmap', 'rerun', 'pyrealsense2', 'cv2') "
+            "if m in sys.modules]; print(bad); sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_elevmap_core_imports_no_realsense():
+    code = ("import sys, elevmap, elevmap.cli, elevmap.commands.bench; sys.exit(1 if 'pyrealsense2' in sys.modules else 0)")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_name_lists_of_the_options_name_the_problem():
+    from noise_model.checks import check_names
+
+    assert check_names(" a, b ", "--x", ["a", "b", "c"]) == ["a", "b"]
+    assert check_names(["c"], "--x", ["a", "b", "c"]) == ["c"]
+    with pytest.raises(ValueError, match="unknown mapper 'd'; mappers: a, b"):
+        check_names("a,d", "--mappers", ["a", "b"], "mapper")
+    with pytest.raises(ValueError, match="names a capture twice"):
+        check_names("a,a", "--heldout", None, "capture")
+    with pytest.raises(ValueError, match="give comma-separated effects"):
+        check_names("a,,b", "--effects", None, "effect")
+    with pytest.raises(ValueError, match="--heldout must be comma-separated captures or a list"):
+        check_names(3, "--heldout", None, "capture")

@@ -1,0 +1,45 @@
+"""The mapping demo end to end: simulate -> map -> .rrd -> replay gives the same map."""
+
+import numpy as np
+
+from elevmap.cli import main
+from elevmap.commands.demo import run_mapping_demo
+from elevmap.pipeline import MappingConfig, run_mapping
+from elevmap.sources.rrd import RrdSource
+
+
+def test_demo_writes_a_recording_that_replays_to_the_same_map(tmp_path):
+    path = tmp_path / "demo.rrd"
+    summary = run_mapping_demo(path, seed=1, n_frames=8, show_progress=False)
+    assert path.is_file() and summary["frames"] == 8
+    err = summary["error"]
+    assert err["known_cells"] > 1000 and np.isfinite(err["median_abs_m"]) and err["median_abs_m"] < 0.1
+    with RrdSource(path) as src:
+        replayed = run_mapping(src, MappingConfig(), show_progress=False)
+    np.testing.assert_array_equal(replayed["map"].data, summary["map"].data)
+
+
+def test_cli_demo_prints_the_error_and_refuses_nothing(tmp_path, capsys):
+    path = tmp_path / "demo.rrd"
+    assert main(["demo", "--rrd", str(path), "--frames", "3", "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "median |error|" in out and "ms per frame" in out and path.is_file()
+    assert main(["demo", "--rrd", str(path), "--frames", "3", "--no-progress"]) == 0     # the demo's own file
+
+
+def test_cli_run_refuses_to_overwrite_and_replay_needs_rrd(tmp_path, capsys):
+    out = tmp_path / "walk.rrd"
+    out.write_bytes(b"a user's recording")
+    assert main(["run", "sim:stairs", "--frames", "2", "--rrd", str(out), "--no-progress"]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert out.read_bytes() == b"a user's recording"
+    assert main(["replay", "sim:stairs"]) == 2
+    assert "replay takes a rerun recording" in capsys.readouterr().err
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[map]\nlength_m = 4.0\nsize = 3\n")
+    assert main(["run", "sim:stairs", "--frames", "2", "--config", str(cfg), "--no-progress"]) == 2
+    assert "unknown mapping setting(s) ['size']" in capsys.readouterr().err
+    cfg.write_text("[map]\nlength_m = 4.0\n[map.fusion]\nmax_points_per_frame = 20.0\n")
+    js = tmp_path / "run.json"
+    assert main(["run", "sim:slope", "--frames", "2", "--config", str(cfg), "--json", str(js), "--no-progress"]) == 0
+    assert '"frames": 2' in js.read_text()
