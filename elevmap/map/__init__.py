@@ -6,7 +6,9 @@
 * :mod:`.neighbours` -- the neighbourhood spread (DerSimonian-Laird / Paule-Mandel).
 * :mod:`.visibility` -- ray-cast clean-up of cells the sensor saw through.
 * :mod:`.prediction` -- process noise from the robot's motion and the fused (ellipse-weighted) map.
-* :mod:`.queries` -- height look-ups and height scans for a controller, grid_map export, .npz files.
+* :mod:`.queries` -- height look-ups and height scans for a controller.
+* :mod:`.grid_map` -- the map as the content of a ``grid_map_msgs/GridMap`` message.
+* :mod:`.storage` -- map files (one ``.npz`` per map, ``elevmap-map/1``).
 * :mod:`.elevation_map` -- :class:`ElevationMap`, the class that ties them together.
 """
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from noise_model.checks import check_points
 
-from . import fusion
+from . import fusion, grid_map, neighbours, prediction, queries, storage, visibility
 from .grid import GridGeometry
 from .layers import LAYERS, POINTS, UNKNOWN_VALUES
 
@@ -203,8 +203,6 @@ class ElevationMap:
     def _neighbours(self, points_map, origin, impl) -> None:
         """Recompute the neighbourhood spread around the cells this frame touched (its points' bounding
         box, with the camera's position when visibility cleared cells on the rays)."""
-        from . import neighbours
-
         lo, hi = points_map[:, :2].min(axis=0), points_map[:, :2].max(axis=0)
         if origin is not None:
             lo, hi = np.minimum(lo, origin[:2]), np.maximum(hi, origin[:2])
@@ -222,8 +220,6 @@ class ElevationMap:
                                                          self.fusion_params.neighbour_estimator)
 
     def _visibility(self, origin, points_map, height_var, stamp, impl) -> int:
-        from . import visibility
-
         fn = visibility.visibility_cleanup if impl == "numba" else visibility.visibility_cleanup_reference
         return fn(self.data, self.geometry, origin, points_map, stamp, stride=self.cleanup_stride,
                   nthreads=self.nthreads, height_var=height_var)
@@ -261,8 +257,6 @@ class ElevationMap:
 
         ``impl="numpy"`` runs the NumPy reference. Returns ``{"cells_expired": int}``.
         """
-        from . import prediction
-
         if impl not in ("numba", "numpy"):
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
         fn = prediction.predict if impl == "numba" else prediction.predict_reference
@@ -270,43 +264,31 @@ class ElevationMap:
 
     def fused_map(self, *, impl: str = "numba") -> dict:
         """EM's ellipse-weighted fused layers, map-index order: see :func:`elevmap.map.prediction.fused_map`."""
-        from . import prediction
-
         if impl not in ("numba", "numpy"):
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
         return prediction.fused_map(self) if impl == "numba" else prediction.fused_map_reference(self)
 
-    # -- queries and files (elevmap.map.queries) -----------------------------------------------------
+    # -- queries (elevmap.map.queries), grid_map export (elevmap.map.grid_map), files (elevmap.map.storage) --
     def height_at(self, xy):
-        """Height [m] and variance [m^2] at map-frame points (2,) or (M, 2); see :func:`elevmap.map.queries.height_at`."""
-        from . import queries
-
+        """Height [m] and variance [m^2] at map-frame points (2,) or (M, 2); see :func:`.queries.height_at`."""
         return queries.height_at(self, xy)
 
     def height_scan(self, T_map_base, pattern="legged_gym", feet_base=None, fill=float("nan")):
         """Heights on a scan pattern around the base; see :func:`elevmap.map.queries.height_scan`."""
-        from . import queries
-
         return queries.height_scan(self, T_map_base, pattern=pattern, feet_base=feet_base, fill=fill)
 
     def to_grid_map(self, layers=None, *, frame_id: str = "map") -> dict:
-        """grid_map message content; see :func:`elevmap.map.queries.to_grid_map`."""
-        from . import queries
-
-        return queries.to_grid_map(self, layers, frame_id=frame_id)
+        """grid_map message content; see :func:`elevmap.map.grid_map.to_grid_map`."""
+        return grid_map.to_grid_map(self, layers, frame_id=frame_id)
 
     def save(self, path) -> None:
-        """Write the map to one .npz file atomically; see :func:`elevmap.map.queries.save`."""
-        from . import queries
-
-        queries.save(self, path)
+        """Write the map to one .npz file atomically; see :func:`elevmap.map.storage.save`."""
+        storage.save(self, path)
 
     @classmethod
     def load(cls, path) -> "ElevationMap":
-        """Read a map written by :meth:`save`; see :func:`elevmap.map.queries.load`."""
-        from . import queries
-
-        return queries._load(path, cls)
+        """Read a map written by :meth:`save`; see :func:`elevmap.map.storage.load`."""
+        return storage.read_map(path, cls)
 
     def __repr__(self) -> str:
         c = self.centre_xy

@@ -1,4 +1,4 @@
-"""What a controller reads from the map: heights at points, height scans, grid_map export, files.
+"""What a controller reads from the map: heights at points and height scans.
 
 Index and frame conventions are those of :mod:`elevmap.map.grid` and are drawn in ``docs/conventions.md``.
 All positions are in the map frame [m] (x forward, y left, z up) unless a name says otherwise.
@@ -21,23 +21,18 @@ measured at all. With fully correlated cells the variance would be (sum w_k sigm
 sigma_k^2, so the linear rule is the conservative of the two, is continuous, and equals a cell's own
 variance at its centre. (grid_map interpolates a variance layer the same way: like any other layer.)
 
-Height scans (:func:`height_scan`) follow the two consumers of the notes: legged_gym's 17 x 11 grid
-around the base (Rudin et al. 2022) and the foot rings of Miki et al. (Science Robotics 2022).
+Height scans (:func:`height_scan`) follow two consumers: legged_gym's 17 x 11 grid around the base
+(Rudin et al. 2022) and the foot rings of Miki et al. (Science Robotics 2022).
 
-grid_map export (:func:`to_grid_map`): see its docstring for the layout and the start-index choice.
-
-Files (:func:`save`, :func:`load`): one ``.npz`` (no pickle) tagged ``elevmap-map/1``, written
-atomically.
+The grid_map export is :mod:`elevmap.map.grid_map`, the ``.npz`` files :mod:`elevmap.map.storage`.
+These modules take the map as an argument and never import :mod:`elevmap.map.elevation_map` (whose
+methods call them); :func:`check_map` checks the argument by what a map holds.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
-import os
-from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -45,11 +40,11 @@ from numba import njit
 from noise_model.checks import check_transform
 from noise_model.numba_config import JIT
 
-from .elevation_map import ElevationMap
-from ..fileio import atomic_output
-from .fusion import FusionParams
 from .grid import GridGeometry
-from .layers import ELEVATION, LAYERS, LAYERS_V1, LAYERS_V2, POINTS, UNKNOWN_VALUES, VARIANCE
+from .layers import ELEVATION, POINTS, VARIANCE
+
+if TYPE_CHECKING:                      # for annotations only: elevation_map imports this module
+    from .elevation_map import ElevationMap
 
 __all__ = [
     "height_at",
@@ -60,10 +55,7 @@ __all__ = [
     "legged_gym_pattern",
     "ScanResult",
     "height_scan",
-    "to_grid_map",
-    "save",
-    "load",
-    "FORMAT_TAG",
+    "check_map",
 ]
 
 
@@ -71,8 +63,6 @@ __all__ = [
 FOOT_RING_RADII = (0.08, 0.16, 0.26, 0.36, 0.48)
 #: Points on each ring: 52 per foot, 208 for four feet.
 FOOT_RING_COUNTS = (6, 8, 10, 12, 16)
-#: Format tag of the files written by :func:`save`.
-FORMAT_TAG = "elevmap-map/1"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -196,8 +186,16 @@ def _height_at_numpy(data, geometry: GridGeometry, x, y, min_points: int = 1):
     return h_out, v_out
 
 
-def _check_map(emap) -> ElevationMap:
-    if not isinstance(emap, ElevationMap):
+def check_map(emap):
+    """``emap`` if it is an elevation map, else ValueError.
+
+    A map is recognised by what it holds (a :class:`GridGeometry` ``geometry``, a 3-D ``data`` array of
+    layers, ``fusion_params``), so that this module need not import :class:`elevmap.ElevationMap`, whose
+    methods call it.
+    """
+    data = getattr(emap, "data", None)
+    if not (isinstance(getattr(emap, "geometry", None), GridGeometry) and isinstance(data, np.ndarray)
+            and data.ndim == 3 and hasattr(emap, "fusion_params")):
         raise ValueError(f"emap must be an elevmap.ElevationMap, got {type(emap).__name__}")
     return emap
 
@@ -251,14 +249,14 @@ def height_at(emap: ElevationMap, xy):
     ValueError
         If ``xy`` has the wrong shape or dtype or holds NaN/inf.
     """
-    emap = _check_map(emap)
+    emap = check_map(emap)
     x, y, single = _check_xy(xy)
     return _result(*_height_at_numba(emap.data, emap.geometry, x, y, emap.fusion_params.min_points), single)
 
 
 def height_at_reference(emap: ElevationMap, xy):
     """NumPy reference of :func:`height_at` (same inputs, outputs and errors)."""
-    emap = _check_map(emap)
+    emap = check_map(emap)
     x, y, single = _check_xy(xy)
     return _result(*_height_at_numpy(emap.data, emap.geometry, x, y, emap.fusion_params.min_points), single)
 
@@ -366,7 +364,7 @@ def height_scan(emap: ElevationMap, T_map_base, pattern="legged_gym", feet_base=
         If ``T_map_base`` is not a rigid transform, the pattern is unknown or malformed, or
         ``feet_base`` is missing, misshapen or not finite.
     """
-    emap = _check_map(emap)
+    emap = check_map(emap)
     T = check_transform(T_map_base, "T_map_base")
     try:
         fill = float(fill)
@@ -400,251 +398,3 @@ def height_scan(emap: ElevationMap, T_map_base, pattern="legged_gym", feet_base=
     known = np.isfinite(h)
     h[~known] = fill
     return ScanResult(points, h, v, known)
-
-
-# ---------------------------------------------------------------------------------------------
-# grid_map export
-# ---------------------------------------------------------------------------------------------
-def to_grid_map(emap: ElevationMap, layers=None, *, frame_id: str = "map") -> dict:
-    """The content of a ``grid_map_msgs/GridMap`` message.
-
-    grid_map's index (row, col) = (0, 0) is the +x, +y corner of the map, rows run towards -x and
-    columns towards -y, and its (unwrapped) cell (r, c) is centred at
-
-        x = position_x + (length_x/2 - res/2) - res r,   y = position_y + (length_y/2 - res/2) - res c.
-
-    So matrix ``M[r, c] = layer[n - 1 - r, n - 1 - c]`` with ``layer`` in map-index order.
-
-    Start indices: the map is exported *unwrapped*, with ``outer_start_index = inner_start_index = 0``.
-    The alternative (the raw circular buffer, flipped, with start indices (-gx0 mod n, -gy0 mod n))
-    saves one roll of each layer, which costs nothing next to the float32, column-major copy the
-    message needs anyway; in exchange every consumer is right, including those that ignore the
-    start indices (as many Python consumers do). elevation_mapping_cupy publishes the same way.
-
-    Parameters
-    ----------
-    emap : ElevationMap
-        The map.
-    layers : sequence of str, optional
-        Layers to export, in this order (all of ``elevmap.map.layers.LAYERS`` by default).
-    frame_id : str
-        The map frame's name.
-
-    Returns
-    -------
-    dict
-        ``frame_id``; ``stamp`` (``emap.last_stamp`` [s], NaN before the first update);
-        ``resolution`` [m]; ``length_x``, ``length_y`` [m]; ``position`` (x, y) [m], the map's centre;
-        ``layers`` (names); ``basic_layers`` (``["elevation", "variance"]``, those of them exported);
-        ``data`` {name: float32 array (rows * cols,), the matrix in column-major order, i.e.
-        ``data[k] = M[k % rows, k // rows]``}; ``layout``, the Float32MultiArray dimensions
-        (``column_index`` then ``row_index``); ``outer_start_index``, ``inner_start_index`` (0, 0);
-        ``size`` (rows, cols). ``elevation`` and ``variance`` are NaN in cells that are not known
-        (fewer than ``FusionParams.min_points`` points, see ``ElevationMap.is_known``): grid_map's
-        basic layers mark validity; the other layers are exported as stored.
-
-    Raises
-    ------
-    ValueError
-        For an unknown or repeated layer name.
-    """
-    emap = _check_map(emap)
-    names = list(LAYERS) if layers is None else [layers] if isinstance(layers, str) else list(layers)
-    if not names:
-        raise ValueError("layers is empty")
-    for name in names:
-        if name not in LAYERS:
-            raise ValueError(f"unknown layer {name!r}; layers are {', '.join(LAYERS)}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"layers has repeated names: {names}")
-    g = emap.geometry
-    n, res = g.n, g.resolution_m
-    rows = cols = n
-    data = {}
-    pending = ~emap.is_known() & np.isfinite(g.unwrap(emap.data[LAYERS.index("elevation")]))
-    for name in names:
-        m = g.unwrap(emap.data[LAYERS.index(name)])      # map-index order, [i, j]
-        if name in ("elevation", "variance"):            # cells below min_points read as unknown
-            m = np.where(pending, np.nan, m)
-        gm = m[::-1, ::-1]                               # grid_map order, [r, c]
-        data[name] = np.ascontiguousarray(gm.T, dtype=np.float32).ravel()   # column-major
-    centre = g.centre_xy
-    return {
-        "frame_id": str(frame_id),
-        "stamp": float(emap.last_stamp),
-        "resolution": float(res),
-        "length_x": float(n * res),
-        "length_y": float(n * res),
-        "position": (float(centre[0]), float(centre[1])),
-        "layers": names,
-        "basic_layers": [b for b in ("elevation", "variance") if b in names],
-        "data": data,
-        "layout": [{"label": "column_index", "size": cols, "stride": rows * cols},
-                   {"label": "row_index", "size": rows, "stride": rows}],
-        "outer_start_index": 0,
-        "inner_start_index": 0,
-        "size": (rows, cols),
-    }
-
-
-# ---------------------------------------------------------------------------------------------
-# files
-# ---------------------------------------------------------------------------------------------
-_KEYS = ("format", "layers", "data", "n", "resolution_m", "gx0", "gy0", "fusion_params", "settings", "frames",
-         "last_stamp")
-
-
-def save(emap: ElevationMap, path) -> None:
-    """Write the map to one ``.npz`` file, atomically (a crash leaves any previous file intact).
-
-    The archive holds ``format`` ("elevmap-map/1"), ``layers`` (the layer names, JSON), ``data``
-    (len(LAYERS), n, n) float64 in buffer order, the geometry ``n``, ``resolution_m`` [m], ``gx0``,
-    ``gy0``, ``fusion_params`` (JSON), ``settings`` (JSON: visibility_cleanup, cleanup_stride),
-    ``frames`` and ``last_stamp`` [s]. No pickled objects: strings are stored as unicode arrays.
-
-    Parameters
-    ----------
-    emap : ElevationMap
-        The map.
-    path : str or os.PathLike
-        Target file (any name; no suffix is added).
-    """
-    emap = _check_map(emap)
-    g = emap.geometry
-    arrays = {
-        "format": np.array(FORMAT_TAG),
-        "layers": np.array(json.dumps(list(LAYERS))),
-        "data": np.ascontiguousarray(emap.data, dtype=np.float64),
-        "n": np.array(g.n, dtype=np.int64),
-        "resolution_m": np.array(g.resolution_m, dtype=np.float64),
-        "gx0": np.array(g.gx0, dtype=np.int64),
-        "gy0": np.array(g.gy0, dtype=np.int64),
-        "fusion_params": np.array(json.dumps(dataclasses.asdict(emap.fusion_params))),
-        "settings": np.array(json.dumps({"visibility_cleanup": bool(emap.visibility_cleanup),
-                                         "cleanup_stride": int(emap.cleanup_stride)})),
-        "frames": np.array(int(emap.frames), dtype=np.int64),
-        "last_stamp": np.array(float(emap.last_stamp), dtype=np.float64),
-    }
-    with atomic_output(path) as tmp:
-        with open(tmp, "wb") as f:           # a file object: np.savez then adds no ".npz" suffix
-            np.savez(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-
-
-def load(path) -> ElevationMap:
-    """Read a map written by :func:`save`; the round trip is bit-exact.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        The file.
-
-    Returns
-    -------
-    ElevationMap
-        The map, with its data, geometry, fusion parameters, settings, frame count and last stamp.
-
-    Raises
-    ------
-    FileNotFoundError
-        If there is no such file.
-    ValueError
-        If the file is truncated or corrupt, not an elevmap map, of another format version, or lacks
-        a key; the message names the file and the problem.
-    """
-    return _load(path, ElevationMap)
-
-
-class _FileProblem(ValueError):
-    """A ValueError that already names the file."""
-
-
-def _load(path, cls):
-    path = Path(path)
-
-    def bad(problem: str) -> ValueError:
-        return _FileProblem(f"{path}: {problem}")
-
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file")
-    try:
-        with open(path, "rb") as f:
-            magic = f.read(6)
-        if not magic:
-            raise bad("empty file (truncated?)")
-        if magic.startswith(b"\x93NUMPY"):
-            raise bad("not an .npz archive but a single .npy array")
-        if not magic.startswith(b"PK"):
-            raise bad("not an .npz archive (no zip signature): corrupt, or not an elevmap map file")
-        z = np.load(path, allow_pickle=False)
-        if not isinstance(z, np.lib.npyio.NpzFile):
-            raise bad("not an .npz archive")
-        with z:
-            present = set(z.files)
-            if "format" not in present:
-                raise bad(f"no 'format' tag: not an elevmap map file (expected {FORMAT_TAG!r})")
-            arrays = {k: z[k] for k in _KEYS if k in present}      # reads (and CRC-checks) every member
-    except (_FileProblem, FileNotFoundError, IsADirectoryError, PermissionError):
-        raise
-    except Exception as e:                      # zipfile.BadZipFile, EOFError, OSError, zlib errors, ...
-        raise bad(f"truncated or corrupt ({type(e).__name__}: {e})") from e
-
-    tag = arrays["format"]
-    if tag.dtype.kind != "U" or tag.shape != () or str(tag) != FORMAT_TAG:
-        raise bad(f"format tag is {tag!r}, expected {FORMAT_TAG!r}")
-    missing = [k for k in _KEYS if k not in arrays]
-    if missing:
-        raise bad(f"missing key(s) {', '.join(missing)}")
-
-    def text(key):
-        a = arrays[key]
-        if a.dtype.kind != "U" or a.shape != ():
-            raise bad(f"{key} must be a string, got dtype {a.dtype} shape {a.shape}")
-        try:
-            return json.loads(str(a))
-        except json.JSONDecodeError as e:
-            raise bad(f"{key} is not valid JSON ({e})") from None
-
-    def scalar(key, kind):
-        a = arrays[key]
-        if a.shape != () or a.dtype.kind not in kind:
-            raise bad(f"{key} must be a scalar of kind {kind!r}, got dtype {a.dtype} shape {a.shape}")
-        return a[()]
-
-    names = text("layers")
-    if names not in (list(LAYERS), list(LAYERS_V1), list(LAYERS_V2)):
-        raise bad(f"layers {names} do not match this version's {list(LAYERS)}")
-    n = int(scalar("n", "iu"))
-    res = float(scalar("resolution_m", "f"))
-    gx0, gy0 = int(scalar("gx0", "iu")), int(scalar("gy0", "iu"))
-    frames = int(scalar("frames", "iu"))
-    last_stamp = float(scalar("last_stamp", "f"))
-    if n < 1 or not (math.isfinite(res) and res > 0):
-        raise bad(f"bad geometry n={n}, resolution_m={res}")
-    data = arrays["data"]
-    if data.shape != (len(names), n, n) or data.dtype != np.float64:
-        raise bad(f"data must be float64 of shape {(len(names), n, n)}, got {data.dtype} {data.shape}")
-    if len(names) < len(LAYERS):         # a map saved before the spread layers: no spread seen yet
-        extra = np.empty((len(LAYERS) - len(names), n, n))
-        extra[:] = np.array(UNKNOWN_VALUES[len(names):])[:, None, None]
-        known = np.isfinite(data[LAYERS.index("elevation")])
-        for name in ("spread", "neighbour_spread"):
-            if LAYERS.index(name) >= len(names):
-                extra[LAYERS.index(name) - len(names)][known] = 0.0
-        data = np.concatenate([data, extra])
-    params = text("fusion_params")
-    settings = text("settings")
-    try:
-        fp = FusionParams(**params)
-        emap = cls(n * res, res, fusion_params=fp, visibility_cleanup=bool(settings["visibility_cleanup"]),
-                   cleanup_stride=int(settings["cleanup_stride"]))
-    except (TypeError, KeyError, ValueError) as e:
-        raise bad(f"bad parameters ({type(e).__name__}: {e})") from None
-    if emap.geometry.n != n:
-        raise bad(f"cannot rebuild a {n} x {n} window at {res} m")
-    emap.geometry = GridGeometry(n, res, gx0, gy0)
-    emap.data[...] = data
-    emap.frames = frames
-    emap.last_stamp = last_stamp
-    return emap

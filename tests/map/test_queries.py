@@ -11,6 +11,7 @@ import pytest
 
 from elevmap import ElevationMap, FusionParams
 from elevmap.map import queries as q
+from elevmap.map import storage
 from elevmap.map.layers import ELEVATION, LAYERS, POINTS, VARIANCE
 
 
@@ -451,7 +452,7 @@ def test_save_load_round_trip_is_bit_exact(tmp_path):
     m.update(pts, np.full(300, 1e-4), stamp=5.0)
     r.update(pts, np.full(300, 1e-4), stamp=5.0)
     assert r.data.tobytes() == m.data.tobytes()                 # and it goes on the same
-    assert type(q.load(path)) is ElevationMap
+    assert type(storage.load(path)) is ElevationMap
 
 
 @pytest.mark.parametrize("version", ["v1", "v2"])
@@ -490,9 +491,9 @@ def test_maps_saved_before_the_spread_layers_still_load(tmp_path, version):
 def test_save_any_name_and_never_updated_map(tmp_path):
     m = small_map()
     path = tmp_path / "sub" / "map.bin"
-    q.save(m, path)
+    storage.save(m, path)
     assert os.listdir(tmp_path / "sub") == ["map.bin"]        # np.savez added no ".npz"
-    r = q.load(path)
+    r = storage.load(path)
     assert math.isnan(r.last_stamp) and r.frames == 0 and r.data.tobytes() == m.data.tobytes()
 
 
@@ -529,11 +530,11 @@ def test_load_names_the_file_and_the_problem(tmp_path):
         p = tmp_path / name
         p.write_bytes(content)
         with pytest.raises(ValueError, match=rf"{name}: (truncated or corrupt|empty file|not an \.npz archive)"):
-            q.load(p)
+            storage.load(p)
 
     np.save(tmp_path / "single.npy", np.zeros(3))
     with pytest.raises(ValueError, match=r"single.npy: not an \.npz archive but a single \.npy array"):
-        q.load(tmp_path / "single.npy")
+        storage.load(tmp_path / "single.npy")
 
     with np.load(good) as z:
         arrays = {k: z[k] for k in z.files}
@@ -550,8 +551,8 @@ def test_load_names_the_file_and_the_problem(tmp_path):
         p = tmp_path / name
         np.savez(p, **a)
         with pytest.raises(ValueError, match=rf"{name}: {match}"):
-            q.load(p)
+            storage.load(p)
     with pytest.raises(FileNotFoundError):
-        q.load(tmp_path / "absent.npz")
+        storage.load(tmp_path / "absent.npz")
     assert zipfile.is_zipfile(good)                             # the good file itself is fine
-    q.load(good)
+    storage.load(good)
