@@ -2,7 +2,7 @@
 
 Frames come from any source (:mod:`elevmap.sources`); each is fused by a :class:`Mapper` into a
 robot-centric :class:`ElevationMap`; when the frames carry the true terrain (the simulator), the map
-is scored against it; with a recording path every frame goes to rerun through :mod:`elevmap.viz.log`
+is scored against it; with a recording path every frame goes to rerun through :mod:`elevmap.viz`
 (imported only then), laid out so that :class:`elevmap.sources.rrd.RrdSource` replays it bit-exact.
 """
 
@@ -175,7 +175,7 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     mapper = Mapper(emap, nthreads=nthreads)
     recording = None
     if rrd_path is not None or spawn:
-        from .viz import log as viz
+        from . import viz
 
         recording = viz.open_recording(rrd_path, application_id, spawn=spawn)
     times, scores, trail = [], [], []
@@ -237,10 +237,10 @@ def _last_truth(frame):
 
 
 class _Logger:
-    """Everything a mapping run sends to rerun (through elevmap.viz.log, the project's rerun module)."""
+    """Everything a mapping run sends to rerun (through elevmap.viz, the project's rerun package)."""
 
     def __init__(self, rec, config: MappingConfig, notes):
-        from .viz import log as viz
+        from . import viz
 
         self.viz = viz
         self.rec = rec

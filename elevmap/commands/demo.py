@@ -23,7 +23,7 @@ residual against the true z, against the RMS of the model's sigma_z at the true 
 same pixels (they agree when simulator and model agree), and the sigma_z the pipeline *predicts* from
 the noisy frame alone (its estimated incidence angles and depth edges).
 
-Entity paths (see ``elevmap.viz.log``)::
+Entity paths (see :mod:`elevmap.viz`)::
 
     world                                   ViewCoordinates RIGHT_HAND_Z_UP
     world/camera_<i>                        Transform3D T_world_cam
@@ -47,7 +47,7 @@ import numpy as np
 import noise_model as nm
 from noise_model.sim.targets import render_planar_target, simulate_target_frames
 
-from ..viz import log as viz
+from .. import viz
 
 __all__ = ["run_noise_demo", "CAPTURES", "EXAMPLE_POSE_COV", "R_WORLD_CAM"]
 

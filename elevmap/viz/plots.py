@@ -1,6 +1,8 @@
-"""PNG figures of reports with matplotlib (imported lazily, ``Agg`` backend; no display needed).
+"""PNG figures with matplotlib (imported lazily, ``Agg`` backend; no display needed).
 
-The characterisation figures of Ahn et al. (2019), drawn from an ``elevmap characterize`` report:
+The characterisation figures of Ahn et al. (2019), drawn from the plain arrays of an ``elevmap
+characterize`` report (``series``: ``elevmap.commands.characterize.figure_series(report)``; ``panels``:
+``elevmap.commands.characterize.plane_distance_panels(records)``):
 
 * :func:`plot_systematic_error`: Fig. 2, the RMS error of the mean of the frames against the known
   distance, with the single-frame plane-fit residual and the paper's equation (1);
@@ -42,16 +44,14 @@ def _save(fig, path) -> Path:
     return path
 
 
-def _series(report):
-    from ..commands.characterize import figure_series
+def plot_systematic_error(series: dict, path) -> Path:
+    """Fig. 2: systematic (RMS) error of the mean of the frames vs distance, with eq. (1) [mm].
 
-    return figure_series(report)
-
-
-def plot_systematic_error(report: dict, path) -> Path:
-    """Fig. 2: systematic (RMS) error of the mean of the frames vs distance, with eq. (1) [mm]."""
+    ``series["fig2"]``: ``distance_m``, ``rms_error_m``, ``residual_m``, ``eq1_m`` (lists [m], None where
+    not measured), ``kind`` and ``theta_deg``.
+    """
     plt = _pyplot()
-    s = _series(report)["fig2"]
+    s = series["fig2"]
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     try:
         d = np.asarray(s["distance_m"], dtype=float)
@@ -76,10 +76,14 @@ def plot_systematic_error(report: dict, path) -> Path:
         plt.close(fig)
 
 
-def plot_axial_variance(report: dict, path) -> Path:
-    """Fig. 3: axial variance sigma_z^2 vs depth per angle; fitted (solid) and paper (dashed) curves."""
+def plot_axial_variance(series: dict, path) -> Path:
+    """Fig. 3: axial variance sigma_z^2 vs depth per angle; fitted (solid) and paper (dashed) curves.
+
+    ``series["fig3"]``: ``angles_deg``, ``points`` (per angle: z [m], variance [m^2]), ``curve_z_m`` and
+    the ``fitted`` and ``paper`` variances over it [m^2].
+    """
     plt = _pyplot()
-    s = _series(report)["fig3"]
+    s = series["fig3"]
     fig, ax = plt.subplots(figsize=(6.4, 4.6))
     try:
         colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -103,12 +107,12 @@ def plot_axial_variance(report: dict, path) -> Path:
         plt.close(fig)
 
 
-def plot_plane_distance(records, path, n_max: int = 6) -> Path:
-    """Fig. 4: per-pixel distance of the mean of the frames to the fitted plane [mm], a few captures."""
-    from ..commands.characterize import plane_distance_panels
+def plot_plane_distance(panels, path) -> Path:
+    """Fig. 4: per-pixel distance of the mean of the frames to the fitted plane [mm], a few captures.
 
+    ``panels``: (capture id, distance image (H, W) [m], colour range [m]) per capture shown.
+    """
     plt = _pyplot()
-    panels = plane_distance_panels(records, n_max)
     n = max(1, len(panels))
     cols = min(3, n)
     rows = int(np.ceil(n / cols))
@@ -132,10 +136,14 @@ def plot_plane_distance(records, path, n_max: int = 6) -> Path:
         plt.close(fig)
 
 
-def plot_lateral_noise(report: dict, path) -> Path:
-    """Lateral noise per capture (left and right edges) vs distance, with sigma_L, sigma_R [mm]."""
+def plot_lateral_noise(series: dict, path) -> Path:
+    """Lateral noise per capture (left and right edges) vs distance, with sigma_L, sigma_R [mm].
+
+    ``series["lateral"]``: per side (distances [m], noise [m]) of the captures used and of those left
+    out (``<side>_unused``), ``sigma_L_m``, ``sigma_R_m`` and the paper's.
+    """
     plt = _pyplot()
-    s = _series(report)["lateral"]
+    s = series["lateral"]
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
     try:
         for side, c, key, pkey in (("left", "C0", "sigma_L_m", "paper_sigma_L_m"),

@@ -1,4 +1,4 @@
-"""The noise-model demo and the rerun helpers of elevmap.viz.log: content, statistics and atomic writes."""
+"""The noise-model demo and the rerun helpers of elevmap.viz: content, statistics and atomic writes."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 import noise_model as nm
 from elevmap.commands import demo
-from elevmap.viz import log as viz
+from elevmap import viz
 
 DT = {6: np.uint8, 7: np.int8, 8: np.uint16, 9: np.int16, 10: np.uint32, 11: np.int32, 34: np.float32,
       35: np.float64}
