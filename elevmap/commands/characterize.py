@@ -586,10 +586,11 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
 
             Path(figures_dir).mkdir(parents=True, exist_ok=True)
             created += [p for p in fig_paths.values() if not p.exists()]
-            plots.plot_systematic_error(report, fig_paths["systematic_error"])
-            plots.plot_axial_variance(report, fig_paths["axial_variance"])
-            plots.plot_plane_distance(records, fig_paths["plane_distance"])
-            plots.plot_lateral_noise(report, fig_paths["lateral_noise"])
+            series = figure_series(report)
+            plots.plot_systematic_error(series, fig_paths["systematic_error"])
+            plots.plot_axial_variance(series, fig_paths["axial_variance"])
+            plots.plot_plane_distance(plane_distance_panels(records), fig_paths["plane_distance"])
+            plots.plot_lateral_noise(series, fig_paths["lateral_noise"])
             report["figures"] = [str(p) for p in fig_paths.values()]
         if rrd_path is not None or spawn:
             if rrd_path is not None:
@@ -681,7 +682,7 @@ def _colour_range(r) -> float:
 
 
 def _write_rrd(report, records, rrd_path, spawn) -> None:
-    from ..viz import log as viz
+    from .. import viz
 
     series = figure_series(report)
     panels = [(r["id"], r["_plane_distance_image"], _colour_range(r)) for r in records

@@ -665,10 +665,10 @@ def format_table(report: dict) -> str:
 
 
 class _CompareLogger:
-    """Everything a comparison sends to rerun (through elevmap.viz.log)."""
+    """Everything a comparison sends to rerun (through elevmap.viz)."""
 
     def __init__(self, path, names, frames, show_progress):
-        from ..viz import log as viz
+        from .. import viz
 
         self.viz = viz
         self.names = list(names)

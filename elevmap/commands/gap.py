@@ -681,7 +681,7 @@ def _bin_gap_share(res: G.DiagnosisResult) -> dict:
 
 def log_gap_recording(path, report: dict, res: G.DiagnosisResult, real: Sequence[CaptureData],
                       model: SensorModel = D435, seed: int = 0, binning: G.Binning | None = None) -> None:
-    """Write the rerun recording of a diagnosis (atomically): bar charts and images, see :mod:`elevmap.viz.log`.
+    """Write the rerun recording of a diagnosis (atomically): bar charts and images, see :mod:`elevmap.viz.reports`.
 
     Entities: ``gap/top`` (the largest baseline gaps, before / after the selected effects), ``gap/by_statistic``,
     ``gap/by_region``, ``gap/by_image_cell``, ``gap/by_distance_m``, ``gap/by_angle_deg`` (mean gap per group,
@@ -689,7 +689,7 @@ def log_gap_recording(path, report: dict, res: G.DiagnosisResult, real: Sequence
     residual over the frames and the fraction of frames with data of one capture per step of the ``capture``
     timeline), ``gap/capture`` and ``gap/summary`` (text).
     """
-    from ..viz import log as viz
+    from .. import viz
 
     binning = binning or G.Binning()
     before, after = res.baseline_all, res.final_all
