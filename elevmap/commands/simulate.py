@@ -1,8 +1,10 @@
 """``elevmap simulate``: capture sets on the paper's grid, and recordings of simulated walks.
 
-Capture sets follow ``shared/specs/capture-set.md`` (``d435-captures/1``) and are rendered with the
-reference simulation of the paper's model (:func:`noise_model.sim.targets.simulate_target_frames`), so that a
-characterisation of them should give back the paper's coefficients.
+Capture sets follow docs/capture-set-format.md (``d435-captures/1``). Each capture's frames are the
+reference simulation of the paper's model of its own ``captures.json`` entry
+(:func:`noise_model.sim.simulate_target` of :meth:`noise_model.sim.CaptureGeometry.from_capture_set_entry`),
+so that a characterisation of them should give back the paper's coefficients, and the gap diagnosis
+simulates exactly what was written.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 import noise_model as nm
-from noise_model.sim.targets import simulate_target_frames
+from noise_model.sim import CaptureGeometry, simulate_target
 
 from ..fileio import atomic_output
 
@@ -86,12 +88,12 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
         for distance, yaw in tqdm(settings, desc="simulate", unit="capture", disable=not show_progress):
             cid = _capture_id(kind, distance, yaw)
             target = {"kind": kind, "distance_m": distance, "yaw_deg": yaw, "pitch_deg": 0.0}
-            extra = {}
             if kind == "board":
                 target.update(width_m=BOARD_WIDTH_M, height_m=BOARD_HEIGHT_M)
-                extra = dict(width_m=BOARD_WIDTH_M, height_m=BOARD_HEIGHT_M, background_m=BACKGROUND_M)
-            frames = simulate_target_frames(K, width, height, distance, int(n_frames), rng, yaw_deg=yaw,
-                                            kind=kind, model=model, **extra)
+            entry = {"id": cid, "depth": f"{cid}.npy", "target": target,
+                     "background_m": BACKGROUND_M if kind == "board" else None}
+            geometry = CaptureGeometry.from_capture_set_entry(camera, entry)
+            frames = simulate_target(geometry, int(n_frames), rng, model)
             path = out / f"{cid}.npy"
             if path.exists() and not overwrite:
                 raise ValueError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
@@ -99,8 +101,7 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
                 with open(tmp, "wb") as fh:
                     np.save(fh, frames)
             written.append(path)
-            entries.append(({"id": cid, "depth": path.name, "target": target,
-                             "background_m": BACKGROUND_M if kind == "board" else None}, None))
+            entries.append((entry, None))
         return write_capture_set(out, camera, entries, overwrite=True,
                                  extra={"simulation": {"model": model.to_dict(), "seed": seed,
                                                        "frames": int(n_frames)}})

@@ -1,25 +1,35 @@
 """The D435 simulator: scenes of primitives, numba ray casting, the reference noise, walks and targets.
 
-It uses the sensor model of :mod:`noise_model` to draw noise; nothing in the model imports it.
+It uses the sensor model of :mod:`noise_model` to draw noise; nothing in the model imports it. The
+modules, in the order a frame is made:
 
 * :mod:`.scene` -- primitives (:class:`Box`, :class:`Stairs`, :class:`Ramp`, :class:`Target`,
-  :class:`HeightField`), :class:`Scene`, the ray caster (:func:`render_depth` and its NumPy reference),
-  the reference noise (:func:`add_noise`), walks (:func:`walk`, :func:`odometry_drift`,
-  :func:`simulate_walk`).
+  :class:`HeightField`) and the :class:`Scene` they make, with its ground truth (``height_at``).
+* :mod:`.render` -- the numba ray caster :func:`render_depth` and its NumPy reference
+  :func:`render_depth_reference`: noise-free z-depth and incidence angle.
+* :mod:`.noise` -- :func:`add_noise`, the reference noise of the paper's model on one frame, and the
+  hook through which depth effects are applied.
+* :mod:`.walks` -- trajectories (:func:`walk`), odometry drift (:func:`odometry_drift`,
+  :func:`camera_pose_cov`) and simulated walks (:func:`simulate_walk`) through a scene.
 * :mod:`.targets` -- planar targets and floors seen from a posed camera (:func:`render_planar_target`,
-  :func:`render_floor`, :func:`camera_extrinsics`, :func:`simulate_target_frames`).
+  :func:`render_floor`, :func:`camera_extrinsics`), the capture geometry (:class:`CaptureGeometry`) and
+  the one reference simulation of a planar target (:func:`simulate_target`, and
+  :func:`simulate_target_frames` for a target given by its parameters).
 * :mod:`.effects` -- depth effects the reference simulation leaves out, applied by the effects hook.
 """
 
-from .scene import (
-    DEFAULT_T_BASE_CAM, NOMINAL_BASE_HEIGHT_M, Box, HeightField, Ramp, Scene, Stairs, Target, add_noise,
-    camera_pose_cov, odometry_drift, render_depth, render_depth_reference, simulate_walk, walk,
+from .noise import add_noise
+from .render import render_depth, render_depth_reference
+from .scene import HF_BLOCK, Box, HeightField, Ramp, Scene, Stairs, Target
+from .targets import (
+    CaptureGeometry, camera_extrinsics, render_floor, render_planar_target, simulate_target, simulate_target_frames,
+    target_rotation,
 )
-from .targets import camera_extrinsics, render_floor, render_planar_target, simulate_target_frames, target_rotation
+from .walks import DEFAULT_T_BASE_CAM, NOMINAL_BASE_HEIGHT_M, camera_pose_cov, odometry_drift, simulate_walk, walk
 
 __all__ = [
     "Box", "Stairs", "Ramp", "HeightField", "Target", "Scene", "render_depth", "render_depth_reference",
     "add_noise", "walk", "odometry_drift", "camera_pose_cov", "simulate_walk", "NOMINAL_BASE_HEIGHT_M",
     "DEFAULT_T_BASE_CAM", "camera_extrinsics", "render_floor", "render_planar_target",
-    "simulate_target_frames", "target_rotation",
+    "simulate_target_frames", "target_rotation", "CaptureGeometry", "simulate_target",
 ]

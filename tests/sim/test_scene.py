@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from noise_model import D435, axial_sigma
-from noise_model.sim.scene import (
+from noise_model.sim import (
     DEFAULT_T_BASE_CAM, NOMINAL_BASE_HEIGHT_M, Box, HeightField, Ramp, Scene, Stairs, Target, add_noise,
     camera_pose_cov, odometry_drift, render_depth, render_depth_reference, simulate_walk, walk,
 )
