@@ -24,10 +24,13 @@ z = z_true + N(0, sigma_z(z_true, theta)^2), independent per pixel and frame
 round(z / depth_scale) as uint16, 0 (no data) where there is no hit or z <= 0. Nothing else: the
 effects the paper leaves out belong to :mod:`noise_model.sim.effects`.
 
-Far pixels: where the true depth is beyond what a uint16 depth can hold, z_true > min(100 m,
-65535 depth_scale), the pixel has no hit (0), and so does a noisy depth beyond 65535 units. A D435
-reports no data there; clipping to 65535 instead would turn a grazing ray of a steep wall (which
-reaches hundreds of metres) into a valid-looking reading at the end of the range.
+Far pixels, one rule for every caller: where the true depth is beyond what a uint16 depth can hold,
+z_true > min(100 m, 65535 depth_scale) (100 m is the largest true depth
+:func:`~noise_model.sim.noise.add_noise` accepts), the pixel has no hit (0), and so does a noisy depth
+beyond 65535 units. A D435 reports no data there. Simulating such pixels would give readings that
+mean nothing: a grazing ray of a steep wall meets it hundreds of metres away, where sigma_z
+(quadratic in z, unbounded as theta nears 90 deg) spreads the draws over the whole range, and a clip
+to 65535 would look like a valid depth at the end of the range.
 
 Regions (int8 codes, :meth:`CaptureGeometry.regions`)
 -----------------------------------------------------
