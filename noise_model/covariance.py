@@ -35,7 +35,7 @@ from .checks import (
     check_angles, check_covariances, check_mask, check_points, check_pose_cov, check_positive_scalar,
     check_transform,
 )
-from .d435 import D435, SensorModel, _axial_sigma_unchecked, _axial_variance_unchecked
+from .d435 import D435, SensorModel, axial_sigma_unchecked, axial_variance_unchecked
 
 __all__ = ["point_covariances", "to_map_frame", "skew", "pose_jacobian", "PIXEL_VARIANCE_PX2"]
 
@@ -116,13 +116,13 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
         if zs.shape != (n,) or not np.all(np.isfinite(zs)) or (n and float(zs.min()) <= 0):
             raise ValueError(f"z_noise must be ({n},) finite depths > 0 [m]")
     if theta_std is None:
-        sz = _axial_sigma_unchecked(zs, th, model)
+        sz = axial_sigma_unchecked(zs, th, model)
         s2 = sz * sz
     else:
         ts = np.asarray(theta_std, dtype=np.float64)
         if ts.shape != (n,) or not np.all(np.isfinite(ts)) or (n and float(ts.min()) < 0):
             raise ValueError(f"theta_std must be ({n},) finite standard deviations >= 0 [rad]")
-        s2 = _axial_variance_unchecked(zs, th, ts, model)
+        s2 = axial_variance_unchecked(zs, th, ts, model)
     if min_axial_var is not None:
         floor = np.asarray(min_axial_var, dtype=np.float64)
         if floor.shape != (n,) or not np.all(np.isfinite(floor)) or (n and float(floor.min()) < 0):

@@ -43,9 +43,10 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from .checks import MAX_PLAUSIBLE_DEPTH_M, check_positive_scalar
+from .formulas import angle_gain, expected_sigma_z_sq, sigma_z_from_gain
 
 __all__ = ["SensorModel", "D435", "axial_sigma", "axial_variance", "expected_rms_error", "THETA_MAX_DEFAULT",
-           "THETA_QUADRATURE", "THETA_GRID"]
+           "THETA_QUADRATURE", "THETA_GRID", "axial_sigma_unchecked", "axial_variance_unchecked"]
 
 #: Default cap on the incidence angle [rad]: 80 deg. The paper measured up to 75 deg; its theta term
 #: diverges at 90 deg, where a stereo camera sees nothing at all. At 80 deg and 1 m sigma_z is already
@@ -236,14 +237,33 @@ def axial_sigma(z, theta=0.0, model: SensorModel = D435):
         raise ValueError("theta must be finite [rad]")
     if t_a.size and float(np.abs(t_a).max()) > 2 * np.pi:
         raise ValueError(f"theta holds values up to {float(np.abs(t_a).max()):.1f}: theta must be in radians")
-    out = _axial_sigma_unchecked(z_a, t_a, model)
+    out = axial_sigma_unchecked(z_a, t_a, model)
     return float(out) if out.ndim == 0 else out
 
 
-def _axial_sigma_unchecked(z, theta, model: SensorModel = D435):
+def axial_sigma_unchecked(z, theta, model: SensorModel = D435):
+    """:func:`axial_sigma` without the input checks, for callers inside the package whose inputs are valid.
+
+    Parameters
+    ----------
+    z : ndarray
+        Depth [m], finite and > 0.
+    theta : ndarray
+        Incidence angle [rad], finite; its sign is ignored and it is capped at ``model.theta_max_rad``.
+    model : SensorModel
+
+    Returns
+    -------
+    ndarray
+        sigma_z [m] (:func:`noise_model.formulas.sigma_z_from_gain`), the broadcast shape of ``z`` and ``theta``.
+    """
     c0, c1, c2, ct = (float(c) for c in model.axial_coefficients)
     t = np.minimum(np.abs(theta), model.theta_max_rad)
-    return c0 + c1 * z + c2 * z * z + ct * z * np.sqrt(z) * t / (0.5 * np.pi - t) ** 2
+    return sigma_z_from_gain(z, angle_gain(t, ct), c0, c1, c2)
+
+
+#: The former private name, still imported by the simulator and the analysis.
+_axial_sigma_unchecked = axial_sigma_unchecked
 
 
 def _gh_rule(k: int):
@@ -261,7 +281,7 @@ def _grid_rule(k: int, half_width: float):
 #: [mu - 4 s, mu + 4 s] lies inside (0, theta_max) the angle gain is smooth there and the probabilists'
 #: 9-node Gauss-Hermite rule is used (within 1 % of a 20001-point integral); elsewhere the gain has a
 #: kink (|theta| at 0, the cap at theta_max) and a 33-node grid over +-4 s is used (within 6 %).
-#: Checked in ``tests/test_d435.py``.
+#: Checked in ``tests/sensor/test_d435.py``.
 THETA_QUADRATURE = _gh_rule(9)
 THETA_GRID = _grid_rule(33, 4.0)
 
@@ -298,7 +318,7 @@ def axial_variance(z, theta=0.0, theta_std=0.0, model: SensorModel = D435):
     if s_a.size and float(s_a.max()) > np.pi:
         raise ValueError(f"theta_std holds values up to {float(s_a.max()):.1f}: theta_std must be in radians")
     z_a, t_a, s_a = np.broadcast_arrays(np.asarray(z, dtype=np.float64), np.asarray(theta, dtype=np.float64), s_a)
-    out = _axial_variance_unchecked(z_a, t_a, s_a, model)
+    out = axial_variance_unchecked(z_a, t_a, s_a, model)
     return float(out) if out.ndim == 0 else out
 
 
@@ -313,8 +333,7 @@ def _gain_moments_unchecked(theta, theta_std, model: SensorModel = D435):
         eg = np.zeros(np.shape(theta))
         eg2 = np.zeros(np.shape(theta))
         for x, w in zip(xs, ws):
-            t = np.minimum(np.abs(theta + theta_std * x), tmax)
-            g = ct * t / ((0.5 * np.pi - t) * (0.5 * np.pi - t))
+            g = angle_gain(np.minimum(np.abs(theta + theta_std * x), tmax), ct)
             eg = eg + w * g
             eg2 = eg2 + w * (g * g)
         out.append((eg, eg2))
@@ -322,12 +341,12 @@ def _gain_moments_unchecked(theta, theta_std, model: SensorModel = D435):
     return np.where(smooth, out[0][0], out[1][0]), np.where(smooth, out[0][1], out[1][1])
 
 
-def _axial_variance_unchecked(z, theta, theta_std, model: SensorModel = D435):
+def axial_variance_unchecked(z, theta, theta_std, model: SensorModel = D435):
+    """:func:`axial_variance` without the input checks (z > 0 [m], theta finite, theta_std >= 0 [rad]):
+    E[sigma_z^2] [m^2] = a^2 + 2 a k E[g] + k^2 E[g^2] (:func:`noise_model.formulas.expected_sigma_z_sq`)."""
     c0, c1, c2, _ = (float(c) for c in model.axial_coefficients)
-    a = c0 + c1 * z + c2 * z * z
-    k = z * np.sqrt(z)
     eg, eg2 = _gain_moments_unchecked(theta, theta_std, model)
-    return a * a + 2.0 * a * k * eg + k * k * eg2
+    return expected_sigma_z_sq(z, eg, eg2, c0, c1, c2)
 
 
 def expected_rms_error(z, subpixel: float = 0.08, baseline: float = 0.050, width_px: int = 848,

@@ -14,7 +14,8 @@ import math
 import numpy as np
 
 from .checks import check_depth, check_intrinsics, check_positive_scalar
-from .d435 import D435, SensorModel, _axial_sigma_unchecked
+from .d435 import D435, SensorModel, axial_sigma_unchecked
+from .formulas import reduced_chi2_quantile
 
 __all__ = [
     "depth_to_metres",
@@ -220,7 +221,7 @@ def incidence_angle_stats(points_cam, block_px: int | None = None, min_points: i
     return out[0], out[1]
 
 
-def _centred_moments(S, n):
+def centred_moments(S, n):
     """(mu, mv, mw, cuu, cuv, cvv, cuw, cvw, cww): means and (co)variances of u', v', w from the summed
     moments S = (n, su, sv, sw, suu, suv, svv, suw, svw, sww) along S's first axis, divided by n (a
     number or an array of S's other shape). Plain arithmetic: the numba kernels compile this same
@@ -230,11 +231,11 @@ def _centred_moments(S, n):
             S[8] / n - mv * mw, S[9] / n - mw * mw)
 
 
-def _plane_rss(S, n, alpha, beta):
+def plane_rss(S, n, alpha, beta):
     """Residual sum of squares of the least-squares plane w = alpha u' + beta v' + gamma over the
-    summed moments S (along its first axis) of n points. Plain arithmetic: the numba kernels compile
-    this same function (``noise_model.kernels``)."""
-    _, _, _, _, _, _, cuw, cvw, cww = _centred_moments(S, n)
+    summed moments S (along its first axis) of n points. ``noise_model.kernels`` repeats these two lines
+    on the compiled :func:`centred_moments`."""
+    _, _, _, _, _, _, cuw, cvw, cww = centred_moments(S, n)
     return n * (cww - alpha * cuw - beta * cvw)
 
 
@@ -244,7 +245,7 @@ def _theta_std_from_moments_numpy(S, alpha, beta, gamma, ok):
     n = S[..., 0]
     ok = ok & (n > 3)
     nn = np.where(ok, n, 4.0)
-    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, cww = _centred_moments(np.moveaxis(S, -1, 0), nn)
+    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, cww = centred_moments(np.moveaxis(S, -1, 0), nn)
     det = np.where(ok, cuu * cvv - cuv * cuv, 1.0)
     rss = cww - alpha * cuw - beta * cvw                           # RSS / n
     rss = np.where(rss > RSS_FLOOR_REL * mw * mw, rss, 0.0)        # below the moments' rounding: 0
@@ -311,9 +312,9 @@ def _planes_from_inverse_depth_moments(S, min_points):
     n = S[..., 0]
     ok = n >= max(min_points, 3)
     nn = np.where(ok, n, 1.0)
-    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, _ = _centred_moments(np.moveaxis(S, -1, 0), nn)
+    mu, mv, mw, cuu, cuv, cvv, cuw, cvw, _ = centred_moments(np.moveaxis(S, -1, 0), nn)
     det = cuu * cvv - cuv * cuv
-    ok &= det > _DEGENERATE_REL * (cuu + cvv) ** 2
+    ok &= det > DEGENERATE_REL * (cuu + cvv) ** 2
     det = np.where(ok, det, 1.0)
     alpha = (cvv * cuw - cuv * cvw) / det
     beta = (cuu * cvw - cuv * cuw) / det
@@ -355,7 +356,7 @@ def plane_depths(points_cam, block_px: int | None = None, min_points: int = NORM
 
 #: A window whose pixel-coordinate covariance has a determinant below this fraction of its squared
 #: trace holds pixels on one line (or one pixel): the plane, and so its normal, is undefined.
-_DEGENERATE_REL = 1e-9
+DEGENERATE_REL = 1e-9
 
 
 def _jump_inputs(depth_m, jump_rel, jump_sigmas, theta):
@@ -374,7 +375,7 @@ def _jump_inputs(depth_m, jump_rel, jump_sigmas, theta):
 
 def _jump_threshold(z, theta, jump_rel, jump_sigmas, model):
     """The depth-edge threshold max(jump_rel z, jump_sigmas sqrt(2) sigma_z(z, theta)) [m]."""
-    return np.maximum(jump_rel * z, jump_sigmas * np.sqrt(2.0) * _axial_sigma_unchecked(z, theta, model))
+    return np.maximum(jump_rel * z, jump_sigmas * np.sqrt(2.0) * axial_sigma_unchecked(z, theta, model))
 
 
 def depth_edges(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDGE_JUMP_SIGMAS,
@@ -537,13 +538,13 @@ def despeckle(depth_m, jump_rel: float = EDGE_JUMP_REL, jump_sigmas: float = EDG
     Why: on a surface seen near grazing incidence the paper's sigma_z is metres (theta / (pi/2 -
     theta)^2), so the reference simulation, and a real D435 on a bad surface, returns the odd pixel
     anywhere between the camera and the far range. Such a pixel 2 m in front of its neighbours also
-    pulls the window's inverse-depth plane (and so sigma_z at that plane) towards the camera, and got
-    a sigma of millimetres: measured on the simulated boxes walk, 0.3 % of the points, each
-    outweighing the hundreds of points of the cell it landed in, and a cell beside the walk that only
-    such pixels reached read the camera's height. Nothing but its neighbours says where a speckle's
-    surface is: :func:`noise_model.depth_to_map_points` places it at their median depth along its
-    ray, with the squared distance as the floor of its axial variance (the usual speckle filter of
-    stereo pipelines would drop it; it is kept, so the counts of points stay those of the image).
+    pulls the window's inverse-depth plane (and so sigma_z at that plane) towards the camera, and gets
+    a sigma of millimetres: each such point outweighs the hundreds of points of the cell it lands in,
+    and a cell that only such pixels reach reads the camera's height. Nothing but its neighbours says
+    where a speckle's surface is: :func:`noise_model.depth_to_map_points` places it at their median
+    depth along its ray, with the squared distance as the floor of its axial variance (the usual
+    speckle filter of stereo pipelines would drop it; it is kept, so the counts of points stay those of
+    the image).
 
     Parameters
     ----------
@@ -602,9 +603,8 @@ def mixed_windows(points_cam, block_px: int | None = None, min_points: int = NOR
 
     Used for binning (:class:`noise_model.MapPoints`): a pixel nearer than its plane is binned at its
     own depth only in a mixed window, where the plane may describe the other surface; on one surface
-    that choice would take the pixels with negative noise nearer and leave the others, which biased
-    a flat floor's heights by +6 mm beside the walk and -3 to -6 mm beyond 1 m (simulated walk, 60
-    frames; binning at the plane there: under 1 mm).
+    that choice would take the pixels with negative noise nearer and leave the others, and so bias a
+    flat floor's heights (docs/calibration.md).
 
     Parameters
     ----------
@@ -651,13 +651,14 @@ def mixed_windows(points_cam, block_px: int | None = None, min_points: int = NOR
             dof += np.where(use, n - 1.0, 0.0)
             nblocks += use
     ntot, swtot = S[..., 0], S[..., 3]
-    within = np.maximum(_plane_rss(np.moveaxis(S, -1, 0), np.where(ntot > 0, ntot, 1.0), a, bb) - between, 0.0)
+    within = np.maximum(plane_rss(np.moveaxis(S, -1, 0), np.where(ntot > 0, ntot, 1.0), a, bb) - between, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         mw = swtot / np.where(ntot > 0, ntot, 1.0)
         exact = within <= RSS_FLOOR_REL * mw * mw * dof
         k = np.maximum(nblocks - 3.0, 1.0)
-        q = 1.0 - 2.0 / (9.0 * k) + zq * np.sqrt(2.0 / (9.0 * k))
-        mixed = np.where(exact, between > RSS_FLOOR_REL * mw * mw * ntot, between * dof > q * q * q * k * within)
+        # F = (between / k) / (within / dof) > chi2_{k,q} / k, k = B - 3 (dof in the hundreds: F ~ chi2_k / k)
+        mixed = np.where(exact, between > RSS_FLOOR_REL * mw * mw * ntot,
+                         between * dof > reduced_chi2_quantile(k, zq) * k * within)
     mixed = mixed | (nblocks <= 3.0) | (dof <= 0.0) | ~ok
     out = np.repeat(np.repeat(mixed, b, axis=0), b, axis=1)[:H, :W].copy()
     out[~valid] = False

@@ -20,18 +20,17 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
-from .numba_config import JIT, resolve_threads, threads
 
 from .checks import check_depth, check_intrinsics, check_pose_cov, check_positive_scalar, check_transform
 from .covariance import point_covariances, to_map_frame
-from .d435 import D435, SensorModel
+from .d435 import D435, THETA_GRID, THETA_QUADRATURE, SensorModel, axial_sigma_unchecked
+from .formulas import angle_gain, expected_sigma_z_sq, reduced_chi2_quantile, sigma_z_from_gain
 from .geometry import (
-    RSS_FLOOR_REL, EDGE_JUMP_REL, EDGE_JUMP_SIGMAS, MIXED_WINDOW_Z, NORMAL_MIN_POINTS, ROW_MEDIAN_HALF_PX,
-    SURFACE_HALF_ROWS, WINDOW_RADIUS_BLOCKS, _DEGENERATE_REL, _centred_moments, default_block_px, deproject,
-    depth_edges, depth_to_metres, incidence_angle_stats, mixed_windows, plane_depths, despeckle,
-    surface_depths,
+    DEGENERATE_REL, EDGE_JUMP_REL, EDGE_JUMP_SIGMAS, MIXED_WINDOW_Z, NORMAL_MIN_POINTS, ROW_MEDIAN_HALF_PX,
+    RSS_FLOOR_REL, SURFACE_HALF_ROWS, WINDOW_RADIUS_BLOCKS, centred_moments, default_block_px, deproject,
+    depth_edges, depth_to_metres, despeckle, incidence_angle_stats, mixed_windows, plane_depths, surface_depths,
 )
-from .d435 import THETA_GRID, THETA_QUADRATURE, _axial_sigma_unchecked
+from .numba_config import JIT, resolve_threads, threads
 
 __all__ = ["MapPoints", "Workspace", "depth_to_map_points", "depth_to_map_points_reference"]
 
@@ -127,13 +126,19 @@ class Workspace:
 # ---------------------------------------------------------------------------------------------
 # numba kernels
 # ---------------------------------------------------------------------------------------------
-#: noise_model.geometry._centred_moments, compiled (S a (10,) or longer moment vector, n a number)
-_centred = njit(**JIT)(_centred_moments)
+#: noise_model.geometry.centred_moments, compiled (S a (10,) or longer moment vector, n a number)
+_centred = njit(**JIT)(centred_moments)
+#: The formulas of noise_model.formulas, compiled: sigma_z from the angle gain, the gain, E[sigma_z^2],
+#: the Wilson-Hilferty quantile per degree of freedom.
+_sigma_z = njit(**JIT)(sigma_z_from_gain)
+_angle_gain = njit(**JIT)(angle_gain)
+_expected_sigma_z_sq = njit(**JIT)(expected_sigma_z_sq)
+_reduced_chi2_quantile = njit(**JIT)(reduced_chi2_quantile)
 
 
 @njit(**JIT)
 def _rss(S, n, alpha, beta):
-    """numba version of :func:`noise_model.geometry._plane_rss` (the same arithmetic on ``_centred``)."""
+    """numba version of :func:`noise_model.geometry.plane_rss` (the same arithmetic on ``_centred``)."""
     _, _, _, _, _, _, cuw, cvw, cww = _centred(S, n)
     return n * (cww - alpha * cuw - beta * cvw)
 
@@ -197,8 +202,7 @@ def _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw):
     eg = 0.0
     eg2 = 0.0
     for k in range(hx.shape[0]):
-        tk = min(abs(t + ts * hx[k]), theta_max)
-        g = ct * tk / ((0.5 * math.pi - tk) * (0.5 * math.pi - tk))
+        g = _angle_gain(min(abs(t + ts * hx[k]), theta_max), ct)
         eg = eg + hw[k] * g
         eg2 = eg2 + hw[k] * (g * g)
     return eg, eg2
@@ -214,7 +218,7 @@ def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
     d = abs(zn - z)
     if d <= jump_rel * zq:                   # the relative part settles most pixels without a sqrt
         return True
-    return d <= thr_sig * (c0 + c1 * zq + c2 * zq * zq + g * zq * math.sqrt(zq))
+    return d <= thr_sig * _sigma_z(zq, g, c0, c1, c2)
 
 
 @njit(**JIT)
@@ -317,8 +321,7 @@ def _mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_re
     if within <= floor_rel * mw * mw * dof:          # noise-free: any structure beyond rounding is a second surface
         return between > floor_rel * mw * mw * ntot
     k = nblocks - 3.0
-    q = 1.0 - 2.0 / (9.0 * k) + mix_z * math.sqrt(2.0 / (9.0 * k))
-    return between * dof > q * q * q * k * within
+    return between * dof > _reduced_chi2_quantile(k, mix_z) * k * within
 
 
 @njit(parallel=True, **JIT)
@@ -449,8 +452,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 if not ok:
                     pg = np.nan
                 eg, eg2 = _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw)
-                t = min(t, theta_max)
-                g = ct * t / ((0.5 * math.pi - t) * (0.5 * math.pi - t))
+                g = _angle_gain(min(t, theta_max), ct)
             for u in range(bx * b, min(W, bx * b + b)):
                 gain_px[by, u] = g
                 eg_px[by, u] = eg
@@ -547,7 +549,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
             for u in range(W):
                 z = zp[u + 1]
                 # noise part with this pixel's sigma_z(z, theta), as noise_model.depth_edges(theta=...)
-                thr = max(jump_rel * z, thr_sig * (c0 + c1 * z + c2 * z * z + gain_px[by, u] * z * math.sqrt(z)))
+                thr = max(jump_rel * z, thr_sig * _sigma_z(z, gain_px[by, u], c0, c1, c2))
                 left = not (zp[u] - z <= thr)
                 right = not (zp[u + 2] - z <= thr)
                 var_x = sR2 if right else -1.0      # -1: interior, the pixel footprint at the point's depth
@@ -605,14 +607,10 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
                 zf = 1.0 / wf if wf > 0.0 else z
                 zf = zf if (zf >= zmin) & (zf <= zmax) else z
-                sf = max(c0 + c1 * zf + c2 * zf * zf + g * zf * math.sqrt(zf),
-                         c0 + c1 * z + c2 * zz + g * z * math.sqrt(z))
+                sf = max(_sigma_z(zf, g, c0, c1, c2), _sigma_z(z, g, c0, c1, c2))
                 zs = zf if abs(z - zf) <= noise_sigmas * sf else z
                 # E[sigma_z^2] over the uncertainty of theta (noise_model.axial_variance)
-                a_s = c0 + c1 * zs + c2 * zs * zs
-                k_s = zs * math.sqrt(zs)
-                s2 = a_s * a_s + 2.0 * a_s * k_s * eg_px[by, u] + k_s * k_s * eg2_px[by, u]
-                s2 = max(s2, dev2)
+                s2 = max(_expected_sigma_z_sq(zs, eg_px[by, u], eg2_px[by, u], c0, c1, c2), dev2)
                 # in a window of two surfaces the model's sigma is the fit's across both (its angle,
                 # its plane): the pixel's distance from its own surface's median is a floor, as a
                 # speckle's from its neighbours (a speckle: its replaced depth, so 0; NaN: not mixed)
@@ -727,7 +725,7 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
         N = _depth_to_map_kernel(d, scale, intr, T, np.zeros((6, 6)) if P is None else P, P is not None,
                                  model.params_array(), edge, np.array([zmin, zmax]), b, WINDOW_RADIUS_BLOCKS,
                                  NORMAL_MIN_POINTS,
-                                 _DEGENERATE_REL, bool(bin_at_plane), MIXED_WINDOW_Z, ROW_MEDIAN_HALF_PX,
+                                 DEGENERATE_REL, bool(bin_at_plane), MIXED_WINDOW_Z, ROW_MEDIAN_HALF_PX,
                                  SURFACE_HALF_ROWS, _GH_X, _GH_W, _GRID_X, _GRID_W, ws.row_median,
                                  ws.points_map, ws.height_var,
                                  ws.horizontal_cov,
@@ -772,8 +770,8 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
         zf = np.where(np.isfinite(z_fit) & (z_fit >= zmin) & (z_fit <= zmax), z_fit, z)
         th = np.nan_to_num(theta)
         zz = np.where(np.isfinite(z), z, 1.0)
-        s = np.maximum(_axial_sigma_unchecked(np.where(np.isfinite(zf), zf, 1.0), th, model),
-                       _axial_sigma_unchecked(zz, th, model))
+        s = np.maximum(axial_sigma_unchecked(np.where(np.isfinite(zf), zf, 1.0), th, model),
+                       axial_sigma_unchecked(zz, th, model))
         use_fit = np.isfinite(zf) & (np.abs(z - zf) <= NOISE_DEPTH_SIGMAS * s)
     z_noise = np.where(use_fit, zf, z)
     valid = np.isfinite(z)
