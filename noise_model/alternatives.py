@@ -39,6 +39,7 @@ import numpy as np
 
 from .checks import check_points, check_pose_cov, check_positive_scalar, check_transform
 from .covariance import skew
+from .registry import build_from_registry
 
 __all__ = ["VarianceModel", "constant", "quadratic", "anybotics_d435", "ANYBOTICS_D435", "VARIANCE_MODELS",
            "make_variance_model"]
@@ -169,7 +170,7 @@ def constant(sigma_m: float = 0.02) -> VarianceModel:
     Parameters
     ----------
     sigma_m : float
-        Point standard deviation [m] (default 0.02, the issue's baseline), in (0, 10].
+        Point standard deviation [m] (default 0.02: a simple baseline), in (0, 10].
 
     Returns
     -------
@@ -291,6 +292,4 @@ def make_variance_model(name: str, **params) -> VarianceModel:
     ValueError
         Unknown name or parameter, or a bad value.
     """
-    from .checks import build_from_registry
-
     return build_from_registry(VARIANCE_MODELS, "variance model", name, params)

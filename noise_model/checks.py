@@ -7,6 +7,8 @@ rerun, pyrealsense2 or OpenCV.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -20,7 +22,8 @@ __all__ = [
     "check_mask",
     "check_covariances",
     "check_positive_scalar",
-    "build_from_registry",
+    "check_scalar_range",
+    "check_integer_range",
 ]
 
 #: Largest plausible depth [m]. A uint16 depth image at the D435's default 1 mm scale reaches 65.5 m;
@@ -39,6 +42,53 @@ def check_positive_scalar(value, name: str, *, upper: float | None = None, unit:
     if upper is not None and x > upper:
         raise ValueError(f"{name} = {x!r} is implausibly large (> {upper}{unit}); check its units")
     return x
+
+
+def check_scalar_range(value, name: str, lo: float, hi: float, *, open_lo: bool = False) -> float:
+    """Return ``value`` as a float in [lo, hi] (in (lo, hi] with ``open_lo``).
+
+    Parameters
+    ----------
+    value : real number
+        Not a bool (``True`` is not a parameter value).
+    name : str
+        The parameter's name, for the message.
+    lo, hi : float
+        The closed range; ``open_lo`` excludes ``lo`` (a parameter that must be strictly positive).
+
+    Raises
+    ------
+    ValueError
+        Not a number, not finite, or outside the range; the message names the parameter and the range.
+    """
+    if isinstance(value, bool):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number, got {value!r}") from None
+    if not math.isfinite(x) or x < lo or x > hi or (open_lo and x == lo):
+        raise ValueError(f"{name} must be in {'(' if open_lo else '['}{lo}, {hi}], got {value!r}")
+    return x
+
+
+def check_integer_range(value, name: str, lo: int, hi: int) -> int:
+    """Return ``value`` as an int in [lo, hi]; a real value is rounded to the nearest integer.
+
+    Random draws and fitted estimates are reals, so an integer parameter accepts them: values within
+    half a unit of the range round into it (:func:`check_scalar_range` on [lo - 1/2, hi + 1/2], then
+    floor(x + 1/2)).
+
+    Raises
+    ------
+    ValueError
+        Not a number, or outside the range after rounding; the message names the parameter.
+    """
+    x = check_scalar_range(value, name, lo - 0.5, hi + 0.5)
+    k = int(math.floor(x + 0.5))
+    if k < lo or k > hi:
+        raise ValueError(f"{name} must be an integer in [{lo}, {hi}], got {value!r}")
+    return k
 
 
 def check_depth(depth, depth_scale=None, name: str = "depth") -> tuple[np.ndarray, float]:
@@ -235,56 +285,3 @@ def check_covariances(cov, n: int | None = None, name: str = "cov_cam") -> np.nd
         if float(np.diagonal(a, axis1=1, axis2=2).min()) < 0:
             raise ValueError(f"{name} has negative variances on the diagonal")
     return a
-
-
-def build_from_registry(registry: dict, kind: str, name: str, params: dict, hidden=()):
-    """Call the factory ``registry[name](**params)``, checking the name and the parameter names.
-
-    Raises ``ValueError`` naming the unknown ``kind`` (e.g. "effect") or parameter and the known ones.
-    """
-    import inspect
-
-    if name not in registry:
-        raise ValueError(f"unknown {kind} {name!r}; known: {', '.join(registry)}")
-    allowed = set(inspect.signature(registry[name]).parameters) - set(hidden)
-    bad = set(params) - allowed
-    if bad:
-        raise ValueError(f"{kind} {name!r} has no parameter(s) {sorted(bad)}; known: {sorted(allowed)}")
-    return registry[name](**params)
-
-
-def check_names(spec, option: str, allowed=None, what: str = "name") -> list[str]:
-    """A list of distinct names from a comma-separated string or a sequence (a command-line option).
-
-    Parameters
-    ----------
-    spec : str or sequence of str
-    option : str
-        The option's name for messages, e.g. ``"--mappers"``.
-    allowed : sequence of str, optional
-        The names known; others are an error naming them.
-    what : str
-        What one name is, for messages ("mapper", "effect", "capture").
-
-    Raises
-    ------
-    ValueError
-        An empty entry, an unknown name, a name given twice.
-    """
-    if isinstance(spec, str):
-        names = [s.strip() for s in spec.split(",")]
-    else:
-        try:
-            names = [str(s).strip() for s in spec]
-        except TypeError:
-            raise ValueError(f"{option} must be comma-separated {what}s or a list of them, got {spec!r}") from None
-    if not names or any(not n for n in names):
-        hint = f" of {', '.join(allowed)}" if allowed is not None else ""
-        raise ValueError(f"{option} {spec!r}: give comma-separated {what}s{hint}")
-    if allowed is not None:
-        for n in names:
-            if n not in allowed:
-                raise ValueError(f"unknown {what} {n!r}; {what}s: {', '.join(allowed)}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"{option} {spec!r} names a {what} twice")
-    return names

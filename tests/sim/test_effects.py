@@ -17,7 +17,7 @@ from conftest import REALDATA
 import noise_model as nm
 from noise_model.sim import effects as E
 from noise_model.analysis.capture_data import CaptureData, CaptureGeometry, simulate_capture
-from noise_model.sim.scene import Box, Scene, add_noise, simulate_walk
+from noise_model.sim import Box, Scene, add_noise, simulate_walk
 
 CAMERA = {"width": 424, "height": 240, "fx": 212.0, "fy": 212.0, "ppx": 211.5, "ppy": 119.5,
           "depth_scale": 0.001, "baseline_m": 0.05}

@@ -1,0 +1,267 @@
+"""Fits of the correlated effects: ``correlated_noise``, ``static_pattern``.
+
+Both fit A exp(-h^2 / (2 l^2)) to the excess (real minus base) lag covariance of a residual
+(:func:`_fit_gaussian_cov`): correlated_noise that of the per-frame residual about the temporal mean
+(which removes everything static), static_pattern that of the temporal-mean residual (which keeps only
+what is static). On single frames both read the frame's residual about its best plane, and cannot tell
+one from the other.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ...d435 import axial_sigma_unchecked
+from ._common import _interior, _nominal, _plane_residual, _roi
+from .spec import FitSpec
+
+
+# ---- lag covariances ------------------------------------------------------------------------------
+def _lag_cov(x, mask, lags):
+    """Mean of x_p x_{p+h} over frames and over pixel pairs h apart (rows and columns) both in mask and
+    finite in x (F, H, W); returns (cov (len(lags),), n_pairs)."""
+    xf = np.where(np.isfinite(x) & mask[None], x, 0.0)
+    vf = (np.isfinite(x) & mask[None]).astype(np.float64)
+    cov, npairs = [], []
+    for h in lags:
+        if h == 0:
+            s, n = float(np.sum(xf * xf)), float(np.sum(vf))
+        else:
+            s = float(np.sum(xf[:, :, h:] * xf[:, :, :-h])) + float(np.sum(xf[:, h:, :] * xf[:, :-h, :]))
+            n = float(np.sum(vf[:, :, h:] * vf[:, :, :-h])) + float(np.sum(vf[:, h:, :] * vf[:, :-h, :]))
+        cov.append(s / n if n > 0 else np.nan)
+        npairs.append(n)
+    return np.array(cov), np.array(npairs)
+
+
+def _fit_gaussian_cov(lags, excess, weights=None, lmin=0.3, lmax=60.0):
+    """A exp(-h^2 / (2 l^2)) fitted to excess covariances (grid in l, A in closed form, A >= 0)."""
+    lags = np.asarray(lags, dtype=float)
+    w = np.ones_like(lags) if weights is None else np.asarray(weights, dtype=float)
+    best = (np.inf, 0.0, 1.0)
+    for ell in np.exp(np.linspace(math.log(lmin), math.log(lmax), 400)):
+        rho = np.exp(-lags ** 2 / (2 * ell * ell))
+        A = max(float(np.sum(w * excess * rho) / np.sum(w * rho * rho)), 0.0)
+        sse = float(np.sum(w * (excess - A * rho) ** 2))
+        if sse < best[0]:
+            best = (sse, A, ell)
+    return best[1], best[2]
+
+
+# ---- correlated_noise -----------------------------------------------------------------------------
+_CORR_LAGS = (0, 1, 2, 3, 4, 6, 8, 11)
+#: Frames whose lag products the correlated-noise fit averages (the temporal mean uses all of them).
+_CORR_FRAMES = 6
+
+
+def _lag_cov_masked(x, w, lags):
+    """:func:`_lag_cov` for x (F, H, W) that is 0 where the weights w (F, H, W) (0/1, float32) are 0."""
+    cov, npairs = [], []
+    for h in lags:
+        if h == 0:
+            s = float(np.einsum("ijk,ijk->", x, x, dtype=np.float64))
+            n = float(np.einsum("ijk->", w, dtype=np.float64))
+        else:
+            s = float(np.einsum("ijk,ijk->", x[:, :, h:], x[:, :, :-h], dtype=np.float64))
+            s += float(np.einsum("ijk,ijk->", x[:, h:, :], x[:, :-h, :], dtype=np.float64))
+            n = float(np.einsum("ijk,ijk->", w[:, :, h:], w[:, :, :-h], dtype=np.float64))
+            n += float(np.einsum("ijk,ijk->", w[:, h:, :], w[:, :-h, :], dtype=np.float64))
+        cov.append(s / n if n > 0 else np.nan)
+        npairs.append(n)
+    return np.array(cov), np.array(npairs)
+
+
+def _standardised_residuals(c, m, sig, nf):
+    """(z - temporal mean) / sigma over the first nf frames at the mask's pixels, values more than 8
+    sigma from the pixel's temporal median left out (0, weight 0) and the mean taken without them;
+    returns (x, w) float32 (nf, H, W)."""
+    z = c.depth_m
+    med = np.median(z, axis=0)
+    with np.errstate(invalid="ignore"):
+        keep = (np.abs(z - med) <= 8.0 * sig) & m[None]
+    n = keep.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(keep, z, 0.0).sum(axis=0) / np.maximum(n, 1)
+    k = keep[:nf]
+    x = np.where(k, (z[:nf] - mean) / sig, 0.0).astype(np.float32)
+    return x, k.astype(np.float32)
+
+
+def _spatial_standardised_residual(c, m, sig, fb):
+    """One-frame counterpart of :func:`_standardised_residuals`: (z - z_plane) / sigma at the mask's
+    pixels, z_plane = f B / (the frame's best disparity plane, :func:`_plane_residual`), values more
+    than 8 sigma from the median left out (0, weight 0); returns (x, w) float32 (1, H, W) or None."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pr = _plane_residual(fb / c.depth_m[0], m)
+    if pr is None:
+        return None
+    z = c.depth_m[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (z - fb / pr[1]) / sig
+        keep = m & np.isfinite(x)
+        med = float(np.median(x[keep])) if keep.any() else 0.0
+        keep &= np.abs(x - med) <= 8.0
+    return (np.where(keep, x, 0.0).astype(np.float32)[None], keep.astype(np.float32)[None])
+
+
+def _fit_correlated_noise(real, base, model, rois=None, **_):
+    """Excess lag covariance of the per-frame residuals, in units of sigma_z.
+
+    Per capture (interior pixels valid in every frame; captures up to 60 deg, below the truncation of
+    the reference noise at grazing angles), x = (z - temporal mean) / sigma_z(z_true, theta), values
+    more than 8 sigma from the pixel's temporal median (outliers) left out of the mean and the sums: the
+    temporal mean removes everything static. The effect adds f g with g a unit field of correlation
+    rho(h), so x's lag covariance (over the first 6 frames) grows by f^2 (1 - 1/F) rho(h). The
+    real-minus-base covariances at lags 0-11 px (rows and columns), divided by (1 - 1/F) and pooled
+    over captures by pair counts, give f^2 and l (:func:`_fit_gaussian_cov`).
+
+    A capture of one frame has no temporal mean: x is its frame's residual about the target's best
+    plane (:func:`_spatial_standardised_residual`), whose lag covariance grows by f^2 rho(h), and lag 0
+    is left out of the fit when any capture has one frame (extra white noise, disparity_noise or a
+    refitted axial sigma, adds there only). Assumption: one frame cannot tell a field drawn afresh
+    every frame from a static one (static_pattern) or from a static share of it, so on single frames
+    the whole excess spatial correlation is attributed to this effect (the temporal share is not
+    identifiable; it is 1 here).
+    """
+    num, den, nF = np.zeros(len(_CORR_LAGS)), np.zeros(len(_CORR_LAGS)), 0
+    single = False
+    for c, b in zip(real, base):
+        g = c.geometry
+        z, th, _, fb = _nominal(g, model)
+        if np.nanmax(th) > math.radians(60.5):
+            continue
+        m = (_interior(g, model, _roi(rois, g)) & np.all(np.isfinite(c.depth_m), axis=0)
+             & np.all(np.isfinite(b.depth_m), axis=0))
+        if m.sum() < 100:
+            continue
+        sig = np.where(m, axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0), model), 1.0)
+        if c.n_frames >= 2:
+            nf = min(c.n_frames, _CORR_FRAMES)
+            xr, wr = _standardised_residuals(c, m, sig, nf)
+            xb, wb = _standardised_residuals(b, m, sig, nf)
+            gain = 1.0 - 1.0 / c.n_frames
+        else:
+            rr = _spatial_standardised_residual(c, m, sig, fb)
+            rb = _spatial_standardised_residual(b, m, sig, fb)
+            if rr is None or rb is None:
+                continue
+            (xr, wr), (xb, wb) = rr, rb
+            gain, single = 1.0, True
+        cr, n = _lag_cov_masked(xr, wr, _CORR_LAGS)
+        cb, _ = _lag_cov_masked(xb, wb, _CORR_LAGS)
+        ok = np.isfinite(cr) & np.isfinite(cb)
+        num[ok] += n[ok] * (cr[ok] - cb[ok]) / gain
+        den[ok] += n[ok]
+        nF += 1
+    if not nF or not (den > 0).all():
+        raise ValueError("correlated_noise: needs captures at <= 60 deg with >= 100 interior pixels valid in "
+                         "every frame")
+    lags, exc = np.array(_CORR_LAGS), num / den
+    if single:
+        lags, exc = lags[1:], exc[1:]
+    A, ell = _fit_gaussian_cov(lags, exc)
+    return {"sigma_z_fraction": float(math.sqrt(max(A, 1e-8))), "length_px": float(ell)}
+
+
+# ---- static_pattern -------------------------------------------------------------------------------
+_STATIC_LAGS = (0, 1, 2, 3, 4, 6, 8, 11, 15, 20, 26)
+
+
+def _detrended_mean_residual(c, m, fb, dtrue):
+    """Temporal mean of the disparity residual, minus its best plane a + b u + c v over the mask."""
+    d = fb / c.depth_m
+    v = np.isfinite(d)
+    n = np.sum(v, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(n >= max(2, c.n_frames // 2), np.where(v, d, 0.0).sum(axis=0) / n, np.nan)
+    r = mean - dtrue
+    ok = m & np.isfinite(r)
+    vv, uu = np.nonzero(ok)
+    if vv.size < 50:
+        return None
+    A = np.column_stack([np.ones(vv.size), uu, vv]).astype(np.float64)
+    coef = np.linalg.lstsq(A, r[ok], rcond=None)[0]
+    out = np.full(r.shape, np.nan)
+    out[ok] = r[ok] - A @ coef
+    return out
+
+
+def _single_frame_residual(c, m, fb):
+    """One frame's disparity minus its best plane (:func:`_plane_residual`), values more than 8 robust
+    sigmas from 0 (outliers) set to NaN; None when fewer than 50 pixels have data."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pr = _plane_residual(fb / c.depth_m[0], m)
+    if pr is None:
+        return None
+    r = pr[0]
+    ok = np.isfinite(r)
+    s = 1.4826 * float(np.median(np.abs(r[ok])))
+    if s > 0:
+        r = np.where(np.abs(r) <= 8.0 * s, r, np.nan)
+    return r
+
+
+def _fit_static_pattern(real, base, model, rois=None, **_):
+    """Excess lag covariance of the temporal-mean disparity residual.
+
+    Per capture (interior pixels): the temporal mean of d = f B / z minus the true disparity, minus its
+    best plane in (u, v) (a depth bias maps a plane's affine disparity to another affine disparity, so
+    it leaves nothing). The pattern adds sigma_px^2 rho(h) to its lag covariance; the base simulation's
+    (noise / F) is subtracted. Captures are pooled with weights n / (base variance + current estimate)^2,
+    then sigma_px^2 and the length are fitted (:func:`_fit_gaussian_cov`). The pattern's realisation is
+    not recovered (its ``seed`` is returned as 0).
+
+    A capture of one frame: the "temporal mean" is its frame (the residual about its best plane fitted
+    robustly, values beyond 8 robust sigmas left out, :func:`_single_frame_residual`), and lag 0 is left
+    out of the fit when any capture has one frame (white noise adds there: the base's is subtracted,
+    but any extra white noise of the real data would read as a pattern). Assumption: one frame cannot
+    tell a static pattern from a field drawn afresh every frame (correlated_noise): on single frames
+    the whole excess spatial correlation of the frame is attributed to the static pattern.
+    """
+    rows = []
+    single = False
+    for c, b in zip(real, base):
+        g = c.geometry
+        z, _, _, fb = _nominal(g, model)
+        m = _interior(g, model, _roi(rois, g))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dtrue = fb / z
+        if c.n_frames >= 2:
+            rr = _detrended_mean_residual(c, m, fb, dtrue)
+            rb = _detrended_mean_residual(b, m, fb, dtrue)
+        else:
+            rr = _single_frame_residual(c, m, fb)
+            rb = _single_frame_residual(b, m, fb)
+        if rr is None or rb is None:
+            continue
+        single |= c.n_frames == 1
+        cr, n = _lag_cov(rr[None], m, _STATIC_LAGS)
+        cb, _ = _lag_cov(rb[None], m, _STATIC_LAGS)
+        if not (np.all(np.isfinite(cr)) and np.all(np.isfinite(cb))):
+            continue
+        rows.append((cr - cb, n, cb[0]))
+    if not rows:
+        raise ValueError("static_pattern: no capture with >= 50 interior pixels with data (in half its frames)")
+    lags = np.array(_STATIC_LAGS)
+    use = slice(1, None) if single else slice(None)
+    A = 0.0
+    ell = 5.0
+    for _ in range(3):
+        num = sum(n * e / (v0 + A) ** 2 for e, n, v0 in rows)
+        den = sum(n / (v0 + A) ** 2 for e, n, v0 in rows)
+        A, ell = _fit_gaussian_cov(lags[use], (num / den)[use], lmin=0.5, lmax=80.0)
+    return {"sigma_px": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
+
+
+#: Registry records (:class:`~.spec.FitSpec`) of this module's fits.
+SPECS = (
+    FitSpec("correlated_noise", _fit_correlated_noise, needs=("wall", "board"),
+            tolerance={"sigma_z_fraction": ("rel", 0.05), "length_px": ("rel", 0.05)},
+            tolerance_single_frame={"sigma_z_fraction": ("rel", 0.03), "length_px": ("rel", 0.06)}),
+    # needs large interiors (walls): a board's interior holds few cells of the pattern
+    FitSpec("static_pattern", _fit_static_pattern, needs=("wall", "board"),
+            tolerance={"sigma_px": ("rel", 0.1), "length_px": ("rel", 0.15)},
+            tolerance_single_frame={"sigma_px": ("rel", 0.05), "length_px": ("rel", 0.16)}),
+)

@@ -1,0 +1,178 @@
+"""Spatially correlated errors: a fresh correlated field each frame, and a static pattern.
+
+* :func:`correlated_noise` (E9): a Gaussian random field drawn afresh every frame, proportional to sigma_z.
+* :func:`static_pattern` (E5, E10): a smooth disparity-offset field, the same in every frame of a capture.
+
+Both draw their fields with :func:`~.base.gaussian_random_field`. A temporal statistic separates them
+(the static pattern survives a temporal mean, the per-frame field does not). Physics and sources: the
+sections cited of ``docs/depth-effects.md``.
+"""
+
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+
+from ...checks import check_integer_range, check_scalar_range
+from ...d435 import D435, SensorModel, axial_sigma_unchecked
+from .base import Effect, _fb, _to_depth, _to_disparity, check_sensor_model, gaussian_random_field
+from .spec import EffectSpec
+
+__all__ = ["correlated_noise", "static_pattern", "CORRELATED_NOISE_DEFAULTS"]
+
+
+#: Defaults of :func:`correlated_noise`: a correlated part as strong as the paper's white noise
+#: (sigma = 1.0 sigma_z, so half the per-pixel variance is correlated) over l = 3 px of the simulated
+#: stream (6 px at 848 x 480, inside the 3-10 px of E9).
+CORRELATED_NOISE_DEFAULTS = {"sigma_z_fraction": 1.0, "length_px": 3.0}
+
+
+class _CorrelatedNoise(Effect):
+    name = "correlated_noise"
+
+    def __init__(self, params: dict, model: SensorModel):
+        super().__init__(params)
+        self.model = model
+
+    def _apply(self, z, theta, rng, context):
+        g = gaussian_random_field(z.shape, self.params["length_px"], rng)
+        if self.params.get("sigma_m") is not None:
+            sigma = self.params["sigma_m"]
+        else:
+            zt = context.get("z_true")
+            if zt is None:
+                raise ValueError("correlated_noise with sigma_z_fraction needs context['z_true']")
+            zt = np.asarray(zt, dtype=np.float64)
+            if zt.shape != z.shape:
+                raise ValueError(f"correlated_noise: context['z_true'] must have shape {z.shape}, got {zt.shape}")
+            hit = np.isfinite(zt) & np.isfinite(theta) & (zt > 0)
+            sigma = np.zeros(z.shape)
+            sigma[hit] = self.params["sigma_z_fraction"] * axial_sigma_unchecked(zt[hit], theta[hit], self.model)
+        return z + sigma * g
+
+
+class _StaticPattern(Effect):
+    name = "static_pattern"
+
+    def __init__(self, params: dict):
+        super().__init__(params)
+        self._fields: dict = {}
+
+    def field(self, shape, capture_id: str = "") -> np.ndarray:
+        """The unit field G (H, W) of a capture: zero mean, unit standard deviation over the image."""
+        H, W = (int(v) for v in shape)
+        key = (H, W, str(capture_id))
+        if key not in self._fields:
+            crc = zlib.crc32(str(capture_id).encode("utf-8"))
+            g = gaussian_random_field((H, W), self.params["length_px"],
+                                      np.random.default_rng([self.params["seed"], crc, H, W]))
+            g -= g.mean()
+            g /= g.std()
+            g.flags.writeable = False
+            if len(self._fields) >= 64:
+                self._fields.pop(next(iter(self._fields)))
+            self._fields[key] = g
+        return self._fields[key]
+
+    def _apply(self, z, theta, rng, context):
+        fb = _fb(context, self.name)
+        G = self.field(z.shape, context.get("capture_id") or "")
+        return _to_depth(fb, _to_disparity(fb, z) + self.params["sigma_px"] * G)
+
+
+def correlated_noise(sigma_m: float | None = None, length_px: float = CORRELATED_NOISE_DEFAULTS["length_px"], *,
+                     sigma_z_fraction: float | None = None, model: SensorModel = D435) -> Effect:
+    """Spatially correlated depth noise (E9): a fresh Gaussian random field each frame.
+
+    Physics and source (docs/depth-effects.md, E9): neighbouring D435 pixels share most of their 9 x 9 census
+    window and their semi-global matching paths, and the projector's ~5000 dots are ~9 px apart at
+    848 x 480, so their depth errors are correlated over several pixels (l ~ 3-10 px at 848 x 480, share
+    of the variance unknown). The paper's model draws each pixel independently, so a mapper that fuses
+    hundreds of pixels per cell as independent measurements becomes overconfident.
+
+    Forward model: z' = z + sigma * g, g a unit-variance Gaussian random field with correlation
+    exp(-h^2 / (2 length_px^2)) between pixels h apart (:func:`gaussian_random_field`, from ``rng``, a
+    fresh field each frame), sigma = ``sigma_m`` or ``sigma_z_fraction * sigma_z(z_true, theta)`` (the
+    correlated part scales with the matching error, as the white part does). The white reference noise
+    stays: the total per-pixel variance is sigma_z^2 + sigma^2.
+
+    Parameters
+    ----------
+    sigma_m : float, optional
+        Standard deviation of the correlated part [m], the same for every pixel, in (0, 1].
+    length_px : float
+        Correlation length l [px of the simulated stream], in (0, 200] (default 3 px: 6 px at
+        848 x 480 when simulating the 424 x 240 stream; the D435's is 3-10 px at 848 x 480).
+    sigma_z_fraction : float, optional
+        Instead of ``sigma_m``: the standard deviation is this fraction of the model's sigma_z at the
+        true depth and incidence angle (``context['z_true']``, ``theta``), in (0, 10]. When neither is
+        given: 1.0 (the correlated part as strong as the paper's white noise).
+    model : SensorModel
+        The sigma_z of ``sigma_z_fraction`` (the paper's D435 by default).
+
+    Returns
+    -------
+    Effect
+        ``effect(z, theta, rng, context) -> z``.
+
+    Raises
+    ------
+    ValueError
+        Both ``sigma_m`` and ``sigma_z_fraction`` given, or a value out of range.
+    """
+    if sigma_m is not None and sigma_z_fraction is not None:
+        raise ValueError("give sigma_m or sigma_z_fraction, not both")
+    ell = check_scalar_range(length_px, "length_px", 0.0, 200.0, open_lo=True)
+    check_sensor_model(model)
+    if sigma_m is not None:
+        sigma_m = check_scalar_range(sigma_m, "sigma_m", 0.0, 1.0, open_lo=True)
+        return _CorrelatedNoise({"sigma_m": sigma_m, "length_px": ell}, model)
+    frac = CORRELATED_NOISE_DEFAULTS["sigma_z_fraction"] if sigma_z_fraction is None else sigma_z_fraction
+    frac = check_scalar_range(frac, "sigma_z_fraction", 0.0, 10.0, open_lo=True)
+    return _CorrelatedNoise({"sigma_z_fraction": frac, "length_px": ell}, model)
+
+
+def static_pattern(sigma_px: float = 0.03, length_px: float = 6.0, seed: int = 0) -> Effect:
+    """A fixed-pattern disparity error, the same in every frame of a capture (E5, E10).
+
+    Physics and source (docs/depth-effects.md, E5 and E10): residual lens distortion, rectification and imager
+    alignment errors make a smooth disparity-offset field over the image ("calibration and lens
+    distortions ... limit whole FOV uniformity", librealsense #3904; ring-like patterns of ~1 % of the
+    distance, #3210; concave planes, #4939, #11511); and with a static scene the projector's dots and
+    the camera are fixed, so most matching errors repeat every frame: a temporal average does not
+    remove them (Intel's Depth Quality Tool separates spatial from temporal noise,
+    ``tools/depth-quality/readme.md``). The paper's model is independent per frame.
+
+    Forward model: d' = f B / z + sigma_px G(u, v), z' = f B / d', with G a Gaussian random field of
+    correlation exp(-h^2 / (2 length_px^2)) (:func:`gaussian_random_field`) shifted and scaled to zero
+    mean and unit standard deviation over the image (so ``sigma_px`` is exactly the pattern's spatial
+    standard deviation [px]). G is constant over the frames of a capture: it is drawn from its own
+    generator, ``numpy.random.default_rng([seed, crc32(capture_id), H, W])`` (``context['capture_id']``;
+    "" on a walk, where the pattern is then locked to the pixel grid for the whole walk, as a
+    calibration error is), never from the frame's ``rng``. Different captures get different
+    realisations of the same statistics (the static part depends on the scene under the dots).
+
+    D435 values: a 1 % ring pattern at 1 m is ~0.2 px at 848 x 480; plane-fit sigma 4.7 mm vs maximum
+    deviation 26.5 mm on a D415 at 1 m (Carfagni et al. 2019); length from ~5 px (dot spacing, matching
+    window) to the image size (calibration). ``sigma_px`` in (0, 2] px, ``length_px`` in (0, 200] px,
+    ``seed`` an integer in [0, 2^31 - 1] (reals are rounded).
+    """
+    ps = {"sigma_px": check_scalar_range(sigma_px, "sigma_px", 0.0, 2.0, open_lo=True),
+          "length_px": check_scalar_range(length_px, "length_px", 0.0, 200.0, open_lo=True),
+          "seed": check_integer_range(seed, "seed", 0, 2 ** 31 - 1)}
+    return _StaticPattern(ps)
+
+
+#: Registry records (:class:`~.spec.EffectSpec`) of this module's effects.
+SPECS = (
+    EffectSpec("correlated_noise", correlated_noise, order=4,
+               # 0.5-1.2 sigma_z correlated over 1.5-4 px (3-8 px at 848 x 480; E9: 3-10)
+               param_ranges={"sigma_z_fraction": (0.5, 1.2), "length_px": (1.5, 4.0)},
+               valid={"sigma_z_fraction": (1e-6, 10.0), "length_px": (0.05, 200.0)}),
+    EffectSpec("static_pattern", static_pattern, order=2,
+               # 0.02-0.05 px: 1.9-4.7 mm at 1 m, 7.5-19 mm at 2 m; correlated over 3-10 px
+               param_ranges={"sigma_px": (0.02, 0.05), "length_px": (3.0, 10.0), "seed": (0, 1_000_000)},
+               valid={"sigma_px": (1e-9, 2.0), "length_px": (0.05, 200.0)},
+               integer_params={"seed": (0, 2 ** 31 - 1)}),
+)
