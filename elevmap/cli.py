@@ -1,4 +1,10 @@
-"""The ``elevmap`` command line: one console script with subcommands."""
+"""The ``elevmap`` command line: one console script with subcommands.
+
+This module parses and dispatches only: each ``_cmd_*`` checks the arguments, then calls its command
+module of :mod:`elevmap.commands` (imported when the command runs, so ``elevmap --help`` loads neither
+numba nor rerun). Every output goes through :func:`elevmap.fileio.check_outputs` before any work.
+A ``ValueError`` is a user error: printed as ``elevmap COMMAND: error: ...``, exit status 2.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +13,21 @@ import json
 import sys
 import textwrap
 
+from .fileio import check_outputs
+
 __all__ = ["main", "build_parser"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose description may end in text computed only when help is shown
+    (``description_tail``: a function returning str), so that building the parser stays light."""
+
+    description_tail = None
+
+    def format_help(self) -> str:
+        if self.description_tail is not None:
+            self.description, self.description_tail = self.description + self.description_tail(), None
+        return super().format_help()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -16,18 +36,24 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrated robot-centric elevation maps from Intel RealSense D435 depth, with the "
                     "noise model of Ahn et al. (2019).",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
 
-    p = sub.add_parser("demo", help="the built-in demonstration; writes demo.rrd",
-                       description="Simulate a wall seen by a D435 at 1 m and 2 m, head-on and at 45 deg, "
-                                   "and write a rerun recording of the depth, the per-point covariance "
-                                   "ellipsoids and sigma_z over depth and incidence angle. Open it with "
-                                   "`rerun demo.rrd`.")
+    p = sub.add_parser("demo", help="the built-in demonstration: a simulated walk mapped; writes demo.rrd and demo.png",
+                       description="Simulate a legged robot walking about 6 m straight ahead, across a field of "
+                                   "4-15 cm boxes and up six 0.17 m steps, seen by a D435 (424x240 at 10 Hz, "
+                                   "0.45 m up, pitched 30 deg down) with the noise of Ahn et al. (2019); map "
+                                   "every frame (8 m map at 0.04 m, following the robot) and score the map "
+                                   "against the true terrain. Writes a rerun recording (depth, camera poses, "
+                                   "points with their 2-sigma covariance ellipsoids, the map coloured by height "
+                                   "and by sigma, time, sigma and error over the frames) and, beside it, a PNG of "
+                                   "the final map (height, sigma and error against the truth side by side: "
+                                   "demo.png beside demo.rrd). Both are replaced if they exist. Open the "
+                                   "recording with `rerun demo.rrd`.")
     p.add_argument("--rrd", default="demo.rrd", help="recording to write (default: demo.rrd)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
     p.add_argument("--noise-model", action="store_true",
-                   help="instead: the noise model alone (walls at 1 and 2 m, head-on and at 45 deg)")
+                   help="instead: the noise model alone (walls at 1 and 2 m, head-on and at 45 deg; no PNG)")
     p.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -71,8 +97,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    from .commands.compare import effects_help
-
     p = sub.add_parser("compare", help="one simulated walk through several mappers: error and calibration",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Render one simulated walk (the paper's reference noise plus optional effects)\n"
@@ -86,9 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "  (ANYbotics' D435 preset), paper_capped (the paper's model with the per-frame\n"
                                    "  information cap --cap)\n"
                                    "sim effects (noise_model.sim.effects), NAME[:KEY=VALUE[:KEY=VALUE]] comma-separated,\n"
-                                   "or a gap report (elevmap gap --json PATH): its selected effects as fitted:\n"
-                                   + effects_help() +
-                                   "\ne.g. --sim-effects correlated_noise:length_px=5,depth_bias  or  --sim-effects gap.json")
+                                   "or a gap report (elevmap gap --json PATH): its selected effects as fitted:\n")
+    p.description_tail = _effects_help
     p.add_argument("--scene", default="stairs", help="stairs, boxes, slope, rough or demo (default: stairs)")
     p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
     p.add_argument("--sim-effects", default=None, metavar="NAMES|GAP.json",
@@ -115,7 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "validated on held-out captures, ablation), HOW FAR the held-out gap shrinks.\n\n"
                                    "  elevmap gap REAL_CAPTURES --json gap.json [--rrd gap.rrd] [--heldout IDS|auto|none]\n"
                                    "  elevmap gap --selftest [--jobs 2]\n"
-                                   "  elevmap gap --realdata ../shared/realdata --json real.json")
+                                   "  elevmap gap --realdata DIR --json real.json")
     p.add_argument("real", metavar="REAL_CAPTURES", nargs="?", help="capture-set folder (captures.json)")
     p.add_argument("--json", metavar="PATH", help="write the report (d435-gap/1); with --selftest, the table")
     p.add_argument("--rrd", metavar="PATH", help="write a rerun recording (bar charts, residual images)")
@@ -127,7 +150,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of simulations, splits and bootstrap (default: 0)")
     p.add_argument("--selftest", action="store_true", help="hide each effect in simulated data and find it")
     p.add_argument("--jobs", type=int, default=1, help="processes for --selftest (default: 1)")
-    p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single frames of DIR (shared/realdata)")
+    p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single D435 frames of DIR (its regions "
+                                                      "of known planes)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     from .commands.protocol import PROTOCOL
@@ -170,19 +195,33 @@ def _source_help() -> str:
     return SOURCE_HELP
 
 
+def _effects_help() -> str:
+    """The effects and their default parameters, then an example (imports the effects library)."""
+    from .commands.compare import effects_help
+
+    return (effects_help() + "\ne.g. --sim-effects correlated_noise:length_px=5,depth_bias  or  "
+            "--sim-effects gap.json")
+
+
+def _open_hint(path) -> str:
+    return f"open it with: rerun {path}"
+
+
 def _cmd_demo(args) -> int:
     if args.noise_model:
         from .commands.demo import run_noise_demo
 
+        check_outputs({"--rrd": args.rrd}, overwrite=True)         # the demo replaces its own file
         summary = run_noise_demo(args.rrd, seed=args.seed, show_progress=not args.no_progress)
         print(json.dumps(summary, indent=2))
+        print(f"wrote {args.rrd}; {_open_hint(args.rrd)}")
     else:
         from .commands.demo import run_mapping_demo
 
         summary = run_mapping_demo(args.rrd, seed=args.seed, n_frames=args.frames,
                                    show_progress=not args.no_progress, spawn=args.spawn)
         _print_summary(summary)
-    print(f"wrote {args.rrd}; open it with: .venv/bin/rerun {args.rrd}")
+        print(f"wrote {args.rrd} and {summary['png']}; {_open_hint(args.rrd)}")
     return 0
 
 
@@ -209,18 +248,6 @@ def _load_config(path):
         raise ValueError(f"{path}: {exc}") from None
 
 
-def _check_output(path, overwrite: bool, source=None):
-    from pathlib import Path
-
-    if path is None:
-        return
-    p = Path(path)
-    if source is not None and Path(source).exists() and p.resolve() == Path(source).resolve():
-        raise ValueError(f"{path} is the source itself; choose another output")
-    if p.exists() and not overwrite:
-        raise ValueError(f"{path} exists; pass --overwrite to replace it")
-
-
 def _print_summary(summary: dict) -> None:
     shown = {k: v for k, v in summary.items() if k != "map"}
     print(json.dumps(shown, indent=2, default=float))
@@ -242,8 +269,7 @@ def _cmd_run(args) -> int:
     if args.command == "replay" and not str(args.source).lower().endswith(".rrd"):
         raise ValueError(f"{args.source}: replay takes a rerun recording (.rrd); use `elevmap run` for others")
     config = _load_config(args.config)
-    _check_output(args.rrd, args.overwrite, args.source)
-    _check_output(args.json, args.overwrite, args.source)
+    check_outputs({"--rrd": args.rrd, "--json": args.json}, args.overwrite, inputs=[args.source])
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     src = open_source(args.source, poses=args.poses, intrinsics=args.intrinsics, frames=args.frames,
@@ -256,7 +282,7 @@ def _cmd_run(args) -> int:
     if args.json:
         write_json_atomic(args.json, {k: v for k, v in summary.items() if k != "map"})
     if args.rrd:
-        print(f"wrote {args.rrd}; open it with: .venv/bin/rerun {args.rrd}")
+        print(f"wrote {args.rrd}; {_open_hint(args.rrd)}")
     return 0
 
 
@@ -272,13 +298,12 @@ class _nullcontext:
 
 
 def _cmd_bench(args) -> int:
-    from .commands.bench import format_table, run_bench
+    from .commands.bench import GROUPS, format_table, run_bench
     from .fileio import write_json_atomic
 
     if args.frames < 1 or args.reference_frames < 1:
         raise ValueError("--frames and --reference-frames must be >= 1")
-    from .commands.bench import GROUPS
-
+    check_outputs({"--json": args.json}, overwrite=True)            # bench replaces its report
     groups = GROUPS if args.only is None else tuple(g.strip() for g in args.only.split(",") if g.strip())
     report = run_bench(args.frames, args.reference_frames, args.threads, show_progress=not args.no_progress,
                        groups=groups)
@@ -313,7 +338,7 @@ def _cmd_simulate(args) -> int:
 
     if not args.rrd:
         raise ValueError("--walk needs --rrd PATH")
-    _check_output(args.rrd, args.overwrite)
+    check_outputs({"--rrd": args.rrd}, args.overwrite)
     src = SimulatedWalk(args.walk, n_frames=args.frames, seed=args.seed, width=width, height=height,
                         drift=args.drift)
     summary = run_mapping(src, MappingConfig(), rrd_path=args.rrd, total=len(src),
@@ -324,17 +349,12 @@ def _cmd_simulate(args) -> int:
 
 
 def _cmd_compare(args) -> int:
-    from pathlib import Path
-
     from .commands.compare import COMPARE_MAX_VARIANCE, DEFAULT_CAP, format_table, json_ready, run_compare
     from .fileio import write_json_atomic
 
     if not args.json:
         raise ValueError("--json PATH is required (the report)")
-    if args.rrd and Path(args.rrd).resolve() == Path(args.json).resolve():
-        raise ValueError("--json and --rrd must be different files")
-    _check_output(args.json, args.overwrite)
-    _check_output(args.rrd, args.overwrite)
+    check_outputs({"--json": args.json, "--rrd": args.rrd}, args.overwrite)
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     try:
@@ -348,7 +368,7 @@ def _cmd_compare(args) -> int:
     report = json_ready(report)
     write_json_atomic(args.json, report)
     print(format_table(report))
-    print(f"wrote {args.json}" + (f" and {args.rrd}; open it with: .venv/bin/rerun {args.rrd}" if args.rrd else ""))
+    print(f"wrote {args.json}" + (f" and {args.rrd}; {_open_hint(args.rrd)}" if args.rrd else ""))
     return 0
 
 
@@ -359,25 +379,25 @@ def _cmd_gap(args) -> int:
         if args.real or args.realdata or args.rrd:
             raise ValueError("--selftest takes no REAL_CAPTURES, --realdata or --rrd")
         res = run_selftest(effects=args.effects, seed=args.seed, show_progress=not args.no_progress,
-                           json_path=args.json, n_jobs=args.jobs)
+                           json_path=args.json, n_jobs=args.jobs, overwrite=args.overwrite)
         print(format_selftest(res))
         return 0 if res["passed"] else 1
-    if args.json and args.rrd and args.json == args.rrd:
-        raise ValueError("--json and --rrd must be different files")
     if args.realdata:
         if args.real:
             raise ValueError("give REAL_CAPTURES or --realdata, not both")
         report = run_realdata(args.realdata, json_path=args.json, rrd_path=args.rrd, effects=args.effects,
-                              seed=args.seed, heldout=args.heldout or "none", show_progress=not args.no_progress)
+                              seed=args.seed, heldout=args.heldout or "none", show_progress=not args.no_progress,
+                              overwrite=args.overwrite)
     else:
         if not args.real:
             raise ValueError("give REAL_CAPTURES (a capture-set folder), --realdata DIR or --selftest")
         report = run_gap(args.real, json_path=args.json, rrd_path=args.rrd, heldout=args.heldout or "auto",
-                         effects=args.effects, seed=args.seed, show_progress=not args.no_progress)
+                         effects=args.effects, seed=args.seed, show_progress=not args.no_progress,
+                         overwrite=args.overwrite)
     print(format_summary(report))
     if args.json or args.rrd:
         print("wrote " + " and ".join(p for p in (args.json, args.rrd) if p)
-              + (f"; open the recording with: .venv/bin/rerun {args.rrd}" if args.rrd else ""))
+              + (f"; {_open_hint(args.rrd)}" if args.rrd else ""))
     return 0
 
 
@@ -391,7 +411,8 @@ def _cmd_characterize(args) -> int:
     return 0 if report["fit"] is not None else 1
 
 
-COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "compare": _cmd_compare, "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
+COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "compare": _cmd_compare, "simulate": _cmd_simulate,
+            "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
 
 
 def main(argv=None) -> int:

@@ -1,4 +1,6 @@
-"""Atomic file output: a temporary file in the target's folder, renamed over it only on success."""
+"""Output files of the commands: one policy for what a run may write (:func:`check_outputs`), and atomic
+writes (a temporary file in the target's folder, renamed over it only on success).
+"""
 
 from __future__ import annotations
 
@@ -7,11 +9,81 @@ import json
 import math
 import os
 import tempfile
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["atomic_output", "write_json_atomic"]
+__all__ = ["check_outputs", "atomic_output", "write_json_atomic", "json_ready"]
+
+
+def check_outputs(outputs: Mapping[str, object], overwrite: bool = False, inputs: Iterable = (), *,
+                  create_folders: bool = False) -> dict[str, Path | None]:
+    """Check every output of a run before the run does any work; the one policy of every command.
+
+    Rules, checked for each output in this order:
+
+    1. an output may not be one of the run's ``inputs`` (whatever ``overwrite`` says: a run must not
+       destroy what it reads);
+    2. an output must be a file path, not an existing folder;
+    3. its folder must exist (unless ``create_folders``: then the run makes it, and only a path
+       component that is an existing file is refused);
+    4. two outputs of one run may not be the same file (the second write would replace the first);
+    5. an existing file is refused unless ``overwrite`` (``--overwrite``).
+
+    Checking first means a refused run leaves every file as it was and costs nothing; the writes
+    themselves are atomic (:func:`atomic_output`), so a run that fails later leaves no partial file.
+
+    Parameters
+    ----------
+    outputs : mapping of str to path or None
+        What each output is, as the user knows it (an option such as ``"--json"``, or a parameter name),
+        to its path; None entries (outputs not asked for) are skipped.
+    overwrite : bool
+        Replace existing files.
+    inputs : iterable of path
+        Files the run reads.
+    create_folders : bool
+        The run creates missing folders of its outputs.
+
+    Returns
+    -------
+    dict of str to Path or None
+        The outputs as :class:`pathlib.Path` (None kept), in the order given.
+
+    Raises
+    ------
+    ValueError
+        The first rule broken, naming the output and its path; the messages say ``refusing to
+        overwrite`` (an input), ``is a directory``, ``folder does not exist``, ``different files`` and
+        ``exists; pass --overwrite``.
+    """
+    ins = {Path(p).resolve() for p in inputs if p is not None}
+    seen: dict[Path, str] = {}
+    out: dict[str, Path | None] = {}
+    for what, path in outputs.items():
+        if path is None:
+            out[what] = None
+            continue
+        p = Path(path)
+        key = p.resolve()
+        if key in ins:
+            raise ValueError(f"{what} {path} is an input of this run; refusing to overwrite it")
+        if p.is_dir():
+            raise ValueError(f"{what} {path} is a directory, not a file path")
+        parent = key.parent
+        if not create_folders and not parent.is_dir():
+            raise ValueError(f"{what} {path}: its folder does not exist")
+        blocking = next((a for a in [parent, *parent.parents] if a.exists()), None)
+        if blocking is not None and not blocking.is_dir():
+            raise ValueError(f"{what} {path}: {blocking} is a file, not a folder")
+        if key in seen:
+            raise ValueError(f"{seen[key]} and {what} are the same file {path}; give them different files")
+        seen[key] = what
+        if p.exists() and not overwrite:
+            raise ValueError(f"{what} {path} exists; pass --overwrite to replace it")
+        out[what] = p
+    return out
 
 
 @contextlib.contextmanager

@@ -1,5 +1,18 @@
-"""The noise-model demo: a simulated D435 looking at a wall, written to a rerun ``.rrd`` file.
+"""``elevmap demo``: the built-in demonstrations, written to a rerun ``.rrd`` file.
 
+The mapping demo (:func:`run_mapping_demo`, ``elevmap demo``)
+--------------------------------------------------------------
+A simulated legged robot walks straight along +x, from x = -0.6 m to 5.6 m at 0.5 m/s, across a field
+of twelve 4-15 cm boxes (x in [0.8, 2.8] m) and up six 0.17 m steps (from x = 3.4 m) to a landing. Its
+D435 (424x240 at 10 Hz, 0.45 m above the base, pitched 30 deg down) has the paper's noise (the reference
+simulation). Every frame goes through :class:`elevmap.Mapper` into an 8 m map at 0.04 m that follows
+the robot (:func:`elevmap.pipeline.run_mapping`, default :class:`elevmap.pipeline.MappingConfig`), and the
+map is scored against the true terrain. Outputs: the recording (see :mod:`elevmap.pipeline` for its
+entities) and, beside it, a PNG of the final map (:func:`elevmap.viz.plots.plot_map_against_truth`:
+height, sigma and error against the truth side by side; ``demo.png`` beside ``demo.rrd``).
+
+The noise-model demo (:func:`run_noise_demo`, ``elevmap demo --noise-model``)
+------------------------------------------------------------------------------
 Four captures of an unbounded planar wall (``noise_model.sim.targets``, the reference simulation of the Ahn et
 al. (2019) model) are placed side by side in the ``world`` frame (right-handed, z up, [m]):
 
@@ -41,6 +54,7 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 
 import numpy as np
 
@@ -48,8 +62,9 @@ import noise_model as nm
 from noise_model.sim.targets import render_planar_target, simulate_target_frames
 
 from .. import viz
+from ..fileio import check_outputs
 
-__all__ = ["run_noise_demo", "CAPTURES", "EXAMPLE_POSE_COV", "R_WORLD_CAM"]
+__all__ = ["run_noise_demo", "run_mapping_demo", "demo_png_path", "CAPTURES", "EXAMPLE_POSE_COV", "R_WORLD_CAM"]
 
 #: (distance [m], yaw [deg]) of the four captures.
 CAPTURES = ((1.0, 0.0), (1.0, 45.0), (2.0, 0.0), (2.0, 45.0))
@@ -306,26 +321,78 @@ def run_noise_demo(path="demo.rrd", seed: int = 0, show_progress: bool = True, *
     return summary
 
 
+def demo_png_path(rrd_path) -> Path:
+    """Where :func:`run_mapping_demo` writes its picture: beside the recording, suffix ``.png``."""
+    return Path(rrd_path).with_suffix(".png")
+
+
 def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None, show_progress: bool = True,
-                     spawn: bool = False) -> dict:
+                     spawn: bool = False, png: bool = True) -> dict:
     """The built-in mapping demo: a simulated robot walks across a box field and up a staircase.
 
     A D435 (424x240, 10 Hz) 0.45 m above the ground and pitched 30 deg down, with the paper's noise
-    (the reference simulation), feeds the mapper; the map follows the robot. Writes a rerun
-    recording to ``path`` (depth, camera poses, points, covariance ellipsoids, the map as meshes
-    coloured by height and by sigma, plots of time, known cells, sigma and error against the true
-    terrain) and returns the run's summary with the map's error against the true terrain.
+    (the reference simulation), feeds the mapper; the map follows the robot (module docstring).
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The rerun recording (depth, camera poses, points, covariance ellipsoids, the map as meshes
+        coloured by height and by sigma, plots of time, known cells, sigma and error against the true
+        terrain). Written atomically; an existing file is replaced.
+    seed : int
+        Seed of the box field, the noise and the subsampling.
+    n_frames : int, optional
+        Frames of the walk (the whole path by default).
+    show_progress : bool
+        A progress bar.
+    spawn : bool
+        Also stream to a new rerun viewer.
+    png : bool
+        Also write the final map against the truth as a PNG beside the recording
+        (:func:`demo_png_path`; replaced if it exists).
+
+    Returns
+    -------
+    dict
+        The summary of :func:`elevmap.pipeline.run_mapping` (with the map under ``map`` and its error
+        against the true terrain under ``error``), plus ``scene`` and ``png`` (the picture's path, or None).
     """
     from ..pipeline import MappingConfig, run_mapping
     from ..sources.simulated import SimulatedWalk
 
+    png_path = demo_png_path(path) if png else None
+    check_outputs({"the recording": path, "the picture": png_path}, overwrite=True)   # the demo's own files
     src = SimulatedWalk("demo", n_frames=n_frames, seed=seed)
     notes = ("# elevmap demo\n\nA simulated legged robot walks across a field of 4-15 cm boxes and up six "
              "0.17 m steps. Its D435 (424x240 at 10 Hz, 0.45 m up, pitched 30 deg down) has the noise of "
              "Ahn et al. (2019). The map (8 m at 0.04 m) follows the robot. `world/map/elevation` is "
              "coloured by height; switch on `world/map/sigma` (coloured by sigma, log scale) and "
              "`world/points_cov` (2-sigma ellipsoids of a point subsample).")
-    summary = run_mapping(src, MappingConfig(), rrd_path=path, spawn=spawn, total=len(src),
+    trail = []
+
+    def frames():
+        for f in src:
+            trail.append(f.T_map_cam[:2, 3])
+            yield f
+
+    summary = run_mapping(frames(), MappingConfig(), rrd_path=path, spawn=spawn, total=len(src),
                           show_progress=show_progress, application_id="elevmap_demo", notes=notes)
     summary["scene"] = "demo: box field then stairs"
+    summary["png"] = None
+    if png_path is not None:
+        from ..viz.plots import plot_map_against_truth
+
+        emap = summary["map"]
+        xs, ys = emap.cell_centres()
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        truth = src.truth_height(np.column_stack([X.ravel(), Y.ravel()])).reshape(X.shape)
+        height = emap.known_layer("elevation")
+        err = summary.get("error", {})
+        title = (f"elevmap demo: {summary['frames']} frames of a simulated D435 walk (box field, then six 0.17 m "
+                 f"steps), map {emap.length_m:g} m at {emap.resolution_m:g} m, seed {seed}")
+        if err:
+            title += f"; median |error| {1000 * err['median_abs_m']:.1f} mm"
+        plot_map_against_truth(xs, ys, height, np.sqrt(emap.known_layer("variance")), height - truth, png_path,
+                               title=title, trail_xy=np.array(trail) if trail else None)
+        summary["png"] = str(png_path)
     return summary

@@ -1,38 +1,66 @@
 """Sources of depth frames (all I/O lives here): each yields :class:`elevmap.frame.Frame` records.
 
 Every source is a context manager and an iterable of frames (``len()`` where the number of frames is
-known without decoding them). pyrealsense2 and OpenCV are imported only by the functions that need
-them, so this package imports without them.
+known without decoding them). :func:`open_source` opens any of them from a command-line style string.
 
+* :mod:`.open` -- :func:`open_source` (``live``, ``.bag``/``.db3``, ``.rrd``, capture sets, PNG folders,
+  ``sim:SCENE``).
 * :mod:`.realsense` -- RealSense .bag/.db3 recordings (:class:`RealSenseFileSource`), the live camera
   (:class:`LiveRealSenseSource`), and a .db3 writer (:func:`record_db3`).
+* :mod:`.rrd` -- rerun recordings with a depth image under a pinhole (:class:`RrdSource`), such as those
+  ``elevmap run --rrd`` writes.
 * :mod:`.captures` -- capture sets, format ``d435-captures/1`` (:func:`read_capture_set`,
   :func:`write_capture_set`).
 * :mod:`.folder` -- a folder of 16-bit depth PNGs with intrinsics and poses (:class:`DepthFolderSource`).
+* :mod:`.viewer_raw` -- raw depth frames exported by the RealSense Viewer (:func:`read_viewer_raw`).
 * :mod:`.poses` -- TUM / Open3D .log pose files (:func:`read_pose_file`), interpolation
   (:class:`PoseTrack`), and :func:`with_poses` to attach them to any source.
+* :mod:`.simulated` -- the simulator walking a robot through a scene (:class:`SimulatedWalk`).
+
+Every name is imported on first use (PEP 562), so ``import elevmap.sources`` loads none of
+pyrealsense2, OpenCV, rerun or the simulator; each is imported only by the source that needs it.
 """
 
-from .captures import Capture, CaptureSet, read_capture_set, write_capture_set
-from .folder import DepthFolderSource, read_intrinsics
-from .poses import PoseTrack, read_pose_file, with_poses
-from .realsense import (
-    LiveRealSenseSource, NoRealSenseDevice, RealSenseFileSource, RealSenseUnavailable, record_db3,
-)
+from __future__ import annotations
 
-__all__ = [
-    "Capture",
-    "CaptureSet",
-    "DepthFolderSource",
-    "LiveRealSenseSource",
-    "NoRealSenseDevice",
-    "PoseTrack",
-    "RealSenseFileSource",
-    "RealSenseUnavailable",
-    "read_capture_set",
-    "read_intrinsics",
-    "read_pose_file",
-    "record_db3",
-    "with_poses",
-    "write_capture_set",
-]
+import importlib
+
+#: Public name -> the submodule that defines it.
+_NAMES = {
+    "open_source": "open",
+    "SOURCE_HELP": "open",
+    "Capture": "captures",
+    "CaptureSet": "captures",
+    "read_capture_set": "captures",
+    "write_capture_set": "captures",
+    "DepthFolderSource": "folder",
+    "read_intrinsics": "folder",
+    "PoseTrack": "poses",
+    "read_pose_file": "poses",
+    "with_poses": "poses",
+    "LiveRealSenseSource": "realsense",
+    "NoRealSenseDevice": "realsense",
+    "RealSenseFileSource": "realsense",
+    "RealSenseUnavailable": "realsense",
+    "record_db3": "realsense",
+    "RrdSource": "rrd",
+    "read_rrd_frames": "rrd",
+    "SimulatedWalk": "simulated",
+    "read_viewer_raw": "viewer_raw",
+    "viewer_raw_metadata": "viewer_raw",
+}
+
+__all__ = sorted(_NAMES)
+
+
+def __getattr__(name: str):
+    module = _NAMES.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_NAMES))

@@ -12,6 +12,11 @@ characterize`` report (``series``: ``elevmap.commands.characterize.figure_series
 * :func:`plot_lateral_noise`: the lateral noise of left and right edges per capture, with sigma_L,
   sigma_R and the paper's values.
 
+And the picture of a map against the true terrain (``elevmap demo`` writes it as ``demo.png``):
+
+* :func:`plot_map_against_truth`: height, sigma and error against the truth side by side, seen from
+  above.
+
 Every file is written atomically (:func:`elevmap.fileio.atomic_output`).
 """
 
@@ -23,9 +28,14 @@ import numpy as np
 
 from ..fileio import atomic_output
 
-__all__ = ["plot_systematic_error", "plot_axial_variance", "plot_plane_distance", "plot_lateral_noise"]
+__all__ = ["plot_systematic_error", "plot_axial_variance", "plot_plane_distance", "plot_lateral_noise",
+           "plot_map_against_truth", "MAP_ERROR_RANGE_M", "MAP_SIGMA_RANGE_M"]
 
 _DPI = 110
+#: Colour range of the error panel of :func:`plot_map_against_truth`: +-10 cm [m].
+MAP_ERROR_RANGE_M = 0.10
+#: Colour range of its sigma panel (log scale): 1 mm to 10 cm [m], as the recordings' sigma mesh.
+MAP_SIGMA_RANGE_M = (0.001, 0.1)
 
 
 def _pyplot():
@@ -162,6 +172,85 @@ def plot_lateral_noise(series: dict, path) -> Path:
         ax.set_title("Lateral noise: spread of edge pixels about the edge's line")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
+        return _save(fig, path)
+    finally:
+        plt.close(fig)
+
+
+def plot_map_against_truth(x_centres, y_centres, height, sigma, error, path, *, title: str = "",
+                           trail_xy=None) -> Path:
+    """The map seen from above, three panels side by side: height, sigma, and error against the truth.
+
+    Parameters
+    ----------
+    x_centres, y_centres : array_like, shape (n,), (m,)
+        Cell-centre coordinates of the rows and columns [m], map frame (``ElevationMap.cell_centres()``).
+    height, sigma, error : array_like, shape (n, m)
+        Per cell, map-index order (row i along +x, column j along +y): the fused height [m], its standard
+        deviation sqrt(variance) [m], and height minus the true height at the cell's centre [m]; NaN
+        where the cell is not known (drawn blank).
+    path : path
+        The PNG, written atomically.
+    title : str
+        A line above the panels.
+    trail_xy : array_like, shape (K, 2), optional
+        The camera's path [m], drawn on every panel.
+
+    Returns
+    -------
+    pathlib.Path
+
+    Notes
+    -----
+    x (the robot's forward direction in the demo) runs to the right and y upwards, so the image is the
+    map frame seen from above (z towards the viewer). Colours: height on ``viridis`` over the known
+    cells' range; sigma on a log scale over :data:`MAP_SIGMA_RANGE_M` (``turbo``); error on ``RdBu_r``
+    over +-:data:`MAP_ERROR_RANGE_M` (blue: below the truth, red: above). The error panel's title gives
+    the RMSE and the 2-sigma coverage over the known cells (the fraction with |error| <= 2 sigma).
+    """
+    plt = _pyplot()
+    from matplotlib.colors import LogNorm
+
+    xs, ys = np.asarray(x_centres, dtype=float), np.asarray(y_centres, dtype=float)
+    h, sg, err = (np.asarray(a, dtype=float) for a in (height, sigma, error))
+    if not (h.shape == sg.shape == err.shape == (len(xs), len(ys))):
+        raise ValueError(f"height, sigma and error must have shape ({len(xs)}, {len(ys)}), got "
+                         f"{h.shape}, {sg.shape}, {err.shape}")
+    res = float(xs[1] - xs[0]) if len(xs) > 1 else 1.0
+    extent = (xs[0] - res / 2, xs[-1] + res / 2, ys[0] - res / 2, ys[-1] + res / 2)
+    known = np.isfinite(h) & np.isfinite(sg) & np.isfinite(err)
+    lo, hi = (float(np.nanpercentile(h[known], 1)), float(np.nanpercentile(h[known], 99))) if known.any() \
+        else (0.0, 1.0)
+    e = MAP_ERROR_RANGE_M
+    panels = [
+        (h, dict(cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-3)), "height [m]", 1.0, "height"),
+        (sg, dict(cmap="turbo", norm=LogNorm(*MAP_SIGMA_RANGE_M)), "sigma [mm]", 1000.0, "sigma (log scale)"),
+        (err, dict(cmap="RdBu_r", vmin=-e, vmax=e), "error [mm]", 1000.0, "error against the truth"),
+    ]
+    if known.any():
+        rmse = float(np.sqrt(np.mean(err[known] ** 2)))
+        cov2 = float(np.mean(np.abs(err[known]) <= 2.0 * sg[known]))
+        panels[2] = panels[2][:4] + (f"error against the truth: RMSE {1000 * rmse:.1f} mm, "
+                                     f"{100 * cov2:.0f}% within 2 sigma",)
+    fig, axes = plt.subplots(1, 3, figsize=(15.0, 4.4), constrained_layout=True)
+    try:
+        for ax, (a, style, label, scale, name) in zip(axes, panels):
+            im = ax.imshow(np.where(known, a, np.nan).T, origin="lower", extent=extent, interpolation="nearest",
+                           **style)
+            cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+            cb.set_label(label)
+            if scale != 1.0:
+                cb.formatter = plt.FuncFormatter(lambda v, _pos, s=scale: f"{s * v:g}")
+                cb.update_ticks()
+            if trail_xy is not None:
+                t = np.asarray(trail_xy, dtype=float)
+                ax.plot(t[:, 0], t[:, 1], "-", color="0.3", lw=0.8)
+            ax.set_title(name, fontsize=10)
+            ax.set_xlabel("x [m]")
+            ax.set_ylabel("y [m]")
+            ax.set_aspect("equal")
+        if title:
+            fig.suptitle(title, fontsize=11)
         return _save(fig, path)
     finally:
         plt.close(fig)
