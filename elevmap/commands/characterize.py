@@ -31,7 +31,7 @@ import noise_model as nm
 from noise_model.analysis import characterization as ch
 from noise_model.d435 import D435
 
-from ..fileio import json_ready, write_json_atomic
+from ..fileio import check_outputs, json_ready, write_json_atomic
 from .protocol import PROTOCOL  # the recording protocol (also in ``elevmap characterize --help``)
 
 __all__ = ["run_characterize", "characterize_capture", "format_summary", "figure_series", "plane_distance_panels",
@@ -463,22 +463,6 @@ def _lateral_summary(records, side: str) -> dict:
             "mean_m": m["mean_m"], "relative_spread": m["tau_log"], "n": m["n"]}
 
 
-def _check_outputs(paths, overwrite: bool) -> None:
-    seen = {}
-    for what, p in paths:
-        if p is None:
-            continue
-        p = Path(p)
-        key = p.resolve()
-        if key in seen:
-            raise ValueError(f"{what} and {seen[key]} are the same file {p}; choose different paths")
-        seen[key] = what
-        if p.is_dir():
-            raise ValueError(f"{what} {p} is a directory, not a file")
-        if p.exists() and not overwrite:
-            raise ValueError(f"{p} exists; pass overwrite=True (--overwrite) to replace it")
-
-
 def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=None, *, model_path=None,
                      overwrite: bool = False, show_progress: bool = True, spawn: bool = False) -> dict:
     """Characterise a camera from a capture set: per-capture noise, the sigma_z fit, sigma_L / sigma_R.
@@ -497,7 +481,8 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         Where the fitted model goes; default ``<json stem>.model.json`` next to ``json_path`` (no model
         file without either). Written only when the fit succeeds.
     overwrite : bool
-        Replace existing output files (otherwise an existing one is an error, before any work).
+        Replace existing output files (otherwise an existing one is an error, before any work; the
+        missing folders of the outputs are created). See :func:`elevmap.fileio.check_outputs`.
     show_progress : bool
         A tqdm progress bar over the captures.
     spawn : bool
@@ -523,10 +508,9 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
     if model_path is None and json_path is not None:
         model_path = default_model_path(json_path)
     fig_paths = {k: Path(figures_dir) / v for k, v in FIGURE_FILES.items()} if figures_dir is not None else {}
-    _check_outputs([("json_path", json_path), ("model_path", model_path), ("rrd_path", rrd_path)]
-                   + [(f"figure {k}", p) for k, p in fig_paths.items()], overwrite)
-    if figures_dir is not None and Path(figures_dir).exists() and not Path(figures_dir).is_dir():
-        raise ValueError(f"figures_dir {figures_dir} exists and is not a folder")
+    check_outputs({"json_path": json_path, "model_path": model_path, "rrd_path": rrd_path,
+                   **{f"figure {k}": p for k, p in fig_paths.items()}}, overwrite,
+                  inputs=[cs.folder / "captures.json"], create_folders=True)
     if not cs.captures:
         raise ValueError(f"{cs.folder}: the capture set holds no captures")
 

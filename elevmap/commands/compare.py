@@ -77,7 +77,7 @@ from noise_model.sim.effects import EFFECTS, Effect, make_effect
 
 from ..map.elevation_map import ElevationMap
 from ..frame import Frame
-from ..fileio import json_ready
+from ..fileio import check_outputs, json_ready
 from ..map.fusion import FusionParams
 from ..mapper import Camera, Mapper
 from ..pipeline import MappingConfig, map_error
@@ -488,7 +488,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         The mappers' variance ceiling ``FusionParams.max_variance`` [m^2], replacing the one of
         ``config`` (default :data:`COMPARE_MAX_VARIANCE`); None keeps ``config``'s.
     rrd_path : path, optional
-        Write a rerun recording there (atomically).
+        Write a rerun recording there (atomically; an existing file is replaced, its folder must exist).
     show_progress : bool
         Progress bars.
     nthreads : int, optional
@@ -509,14 +509,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     effects = parse_effects(sim_effects)
     if scene not in SCENES:
         raise ValueError(f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
-    if rrd_path is not None:
-        from pathlib import Path
-
-        rp = Path(rrd_path)
-        if rp.is_dir():
-            raise ValueError(f"rrd_path {rrd_path} is a directory, not a file path")
-        if not rp.resolve().parent.is_dir():
-            raise ValueError(f"rrd_path {rrd_path}: its folder does not exist")
+    check_outputs({"rrd_path": rrd_path}, overwrite=True)       # the command line has refused existing files
     t0 = time.perf_counter()
     frames, walk = render_walk(scene, n_frames, seed, effects, width, height, show_progress)
     render_ms = 1e3 * (time.perf_counter() - t0) / max(1, len(frames))

@@ -42,7 +42,7 @@ from noise_model.analysis.capture_data import CaptureData, CaptureGeometry, chec
 from noise_model.checks import check_names
 from noise_model.d435 import D435, SensorModel
 
-from ..fileio import json_ready, write_json_atomic
+from ..fileio import check_outputs, json_ready, write_json_atomic
 
 __all__ = ["FORMAT", "run_gap", "run_selftest", "run_realdata", "diagnose", "format_summary", "format_selftest",
            "parse_effect_names", "split_captures", "auto_heldout", "CaptureSimulator", "EffectFitter",
@@ -313,27 +313,6 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
     return json_ready(report), res
 
 
-def _check_output(path, suffixes: tuple, what: str) -> Path | None:
-    if path is None:
-        return None
-    p = Path(path)
-    if p.is_dir():
-        raise ValueError(f"{what} {path} is a directory, not a file path")
-    if not p.resolve().parent.is_dir():
-        raise ValueError(f"{what} {path}: its folder does not exist")
-    if p.exists():
-        ok = p.suffix.lower() in suffixes
-        if ok and p.suffix.lower() == ".json":
-            try:
-                ok = json.loads(p.read_text()).get("format") == FORMAT
-            except (OSError, ValueError, AttributeError):
-                ok = False
-        if not ok:
-            raise ValueError(f"{what} {path} exists and is not a previous output of elevmap gap; "
-                             "refusing to overwrite it")
-    return p
-
-
 def load_capture_set(real_dir):
     """Read a capture set into CaptureData (geometry from captures.json, frames from its depth files)."""
     from ..sources.captures import read_capture_set
@@ -349,7 +328,7 @@ def load_capture_set(real_dir):
 
 def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=None, seed: int = 0,
             show_progress: bool = True, model: SensorModel = D435, config: G.SelectionConfig | None = None,
-            n_splits: int = 64, n_boot: int = 64) -> dict:
+            n_splits: int = 64, n_boot: int = 64, overwrite: bool = False) -> dict:
     """``elevmap gap REAL_CAPTURES``: diagnose a capture set, write the report (and recording).
 
     Parameters
@@ -357,7 +336,7 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     real_dir : path
         The real capture set (``captures.json`` folder).
     json_path : path, optional
-        Write the report there (atomically; an existing file is replaced only if it is a gap report).
+        Write the report there (atomically; an existing file only with ``overwrite``).
     rrd_path : path, optional
         Write a rerun recording there (atomically): gap per stratum as bar charts, before / after,
         real and simulated residual images side by side.
@@ -368,6 +347,8 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     model : SensorModel
     config : noise_model.analysis.diagnosis.SelectionConfig, optional
     n_splits, n_boot : int
+    overwrite : bool
+        Replace existing output files (otherwise they are refused before any work).
 
     Returns
     -------
@@ -387,8 +368,8 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
         ``binning``, ``mismatches`` (recordings whose intrinsics differ from captures.json),
         ``seconds``, and ``rrd`` when a recording was written.
     """
-    jp = _check_output(json_path, (".json",), "json_path")
-    rp = _check_output(rrd_path, (".rrd",), "rrd_path")
+    jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite,
+                           inputs=[Path(real_dir) / "captures.json"]).values()
     cs, real = load_capture_set(real_dir)
     report, res = diagnose(real, heldout=heldout, effects=effects, seed=seed, model=model,
                            show_progress=show_progress, real_label=str(real_dir), config=config, n_splits=n_splits,
@@ -580,7 +561,8 @@ def _selftest_case(case: dict, seed: int, n_frames: int, width: int, height: int
 
 
 def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 424, height: int = 240,
-                 show_progress: bool = True, json_path=None, n_jobs: int = 1, model: SensorModel = D435) -> dict:
+                 show_progress: bool = True, json_path=None, n_jobs: int = 1, model: SensorModel = D435,
+                 overwrite: bool = False) -> dict:
     """``elevmap gap --selftest``: the diagnosis must find effects it was not told about.
 
     For every effect of the library (or ``effects``): pseudo-real data = the reference simulation of
@@ -597,6 +579,8 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
     ----------
     n_jobs : int
         Cases run in this many processes (1: in this process).
+    overwrite : bool
+        Replace an existing ``json_path``.
 
     Returns
     -------
@@ -609,11 +593,7 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
 
     t0 = time.perf_counter()
     cases = _selftest_cases(effects, seed)
-    jp = None
-    if json_path is not None:
-        jp = Path(json_path)
-        if jp.is_dir() or not jp.resolve().parent.is_dir():
-            raise ValueError(f"json_path {json_path}: not a file path in an existing folder")
+    jp = check_outputs({"json_path": json_path}, overwrite)["json_path"]
     if int(n_jobs) <= 1:
         rows = [_selftest_case(c, seed, n_frames, width, height, model, i)
                 for i, c in enumerate(tqdm(cases, desc="selftest", unit="case", disable=not show_progress))]
@@ -858,7 +838,8 @@ def realdata_captures(root, planes=REALDATA_PLANES, model: SensorModel = D435):
 
 
 def run_realdata(root, json_path=None, rrd_path=None, effects=None, seed: int = 0, heldout="none",
-                 show_progress: bool = True, model: SensorModel = D435, planes=REALDATA_PLANES) -> dict:
+                 show_progress: bool = True, model: SensorModel = D435, planes=REALDATA_PLANES,
+                 overwrite: bool = False) -> dict:
     """The diagnosis on the genuine single D435 frames of ``shared/realdata`` (no known target).
 
     Every region of ``planes`` becomes a capture whose geometry is the plane fitted to it; one frame
@@ -877,8 +858,7 @@ def run_realdata(root, json_path=None, rrd_path=None, effects=None, seed: int = 
     root = Path(root)
     if not root.is_dir():
         raise ValueError(f"{root}: no such folder (the genuine D435 recordings)")
-    jp = _check_output(json_path, (".json",), "json_path")
-    rp = _check_output(rrd_path, (".rrd",), "rrd_path")
+    jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite).values()
     caps, rois, dists, notes, skipped = realdata_captures(root, planes, model)
     if not caps:
         raise ValueError(f"{root}: no usable plane ({skipped})")

@@ -16,7 +16,7 @@ import numpy as np
 import noise_model as nm
 from noise_model.sim import CaptureGeometry, simulate_target
 
-from ..fileio import atomic_output
+from ..fileio import atomic_output, check_outputs
 
 __all__ = ["paper_grid", "simulate_capture_set", "BOARD_WIDTH_M", "BOARD_HEIGHT_M", "BACKGROUND_M"]
 
@@ -77,6 +77,8 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
     out = Path(out)
     if (out / "captures.json").exists() and not overwrite:
         raise ValueError(f"{out} already holds a capture set; pass overwrite=True (--overwrite) to replace it")
+    check_outputs({f"capture {_capture_id(kind, d, y)}": out / f"{_capture_id(kind, d, y)}.npy" for d, y in settings},
+                  overwrite, create_folders=True)
     K = model.intrinsics(width, height)
     camera = {"model": "D435 (simulated: reference simulation of Ahn et al. 2019)", "width": int(width),
               "height": int(height), "fx": float(K[0, 0]), "fy": float(K[1, 1]), "ppx": float(K[0, 2]),
@@ -95,8 +97,6 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
             geometry = CaptureGeometry.from_capture_set_entry(camera, entry)
             frames = simulate_target(geometry, int(n_frames), rng, model)
             path = out / f"{cid}.npy"
-            if path.exists() and not overwrite:
-                raise ValueError(f"{path} exists; pass overwrite=True (--overwrite) to replace it")
             with atomic_output(path, suffix=".npy") as tmp:
                 with open(tmp, "wb") as fh:
                     np.save(fh, frames)
