@@ -1,46 +1,52 @@
-"""Per-cell Kalman fusion of one frame of map-frame points, in information form.
+"""Per-cell Kalman fusion of one frame of map-frame points, in information form (docs/fusion.md).
 
-For each cell, the frame's points are gated against the cell's prior (h, sigma_p^2) with the
-Mahalanobis distance |z - h| / sqrt(sigma^2 + sigma_p^2) (threshold 2.5 by default). The accepted
-points are summed in information form, W = sum 1/sigma_i^2 and WZ = sum z_i/sigma_i^2, and combined
-once with the prior:
+Gate: each of the frame's points is tested against its cell's prior (h, P) with the Mahalanobis
+distance |z - h| / sqrt(sigma^2 + P) (threshold 2.5 by default). P is the variance of the cell's fused
+mean: its ``variance`` without what the neighbourhood adds (:func:`neighbour_excess`).
 
-    sigma_post^2 = 1 / (1/sigma_p^2 + W),   h_post = sigma_post^2 (h/sigma_p^2 + WZ),
+Update: the accepted points are summed in information form, W = sum w_i and WZ = sum w_i z_i, and
+combined once with the prior:
+
+    P_post = 1 / (1/P + W),   h_post = P_post (h/P + WZ),
 
 which is the sequential Kalman update without its order dependence. An unknown cell takes the
-frame's weighted mean and 1/W.
+frame's weighted mean WZ / W and variance 1 / W.
 
 Random-effects prior: where the cell's points scatter about its height more than their variances
-allow (its spread tau^2 > 0, see ``spread_alpha``), each new point is weighted 1/(sigma^2 + tau^2) and
-the prior, the mean of the n points fused so far, has variance at least tau^2 m / n with m this
-frame's points in the cell: what a mean of n points that scatter by tau^2 can know when they come
-m at a time and a frame's points share their error (the level an edge's lateral noise shows them, a
-correlated depth error), i.e. tau^2 per frame's worth of points. Without that floor a cell
-initialised by one wrong point (a far depth outlier with a small stated sigma) kept its fixed-effect
-variance against the random-effects weights of every later point: measured on the simulated boxes
-walk, a box top stayed at -0.33 m through 50 points at its true 0.25 m. With tau^2 / n (each point
-independent) the cell followed the mean of all its points, and a cell at a box's edge still read
-0.12 m ten frames after the box was taken away.
+allow (its spread tau^2 > 0, see ``spread_alpha``), each new point is weighted w_i = 1/(sigma_i^2 +
+tau^2), and the prior, the mean of the n points fused so far, has variance at least tau^2 m / n with
+m this frame's points in the cell: what a mean of n points that scatter by tau^2 can know when they
+come m at a time and a frame's points share their error (the level an edge's lateral noise shows
+them, a correlated depth error), i.e. tau^2 per frame's worth of points. Without that floor a cell
+initialised by one wrong point (a far depth outlier with a small stated sigma) keeps its fixed-effect
+variance against the random-effects weights of every later point and stays near the outlier through
+dozens of points; with tau^2 / n (every point independent) a cell follows the mean of all its points
+and lags a change by many frames.
 
 A new point's tau^2 is the larger of the cell's spread and its neighbourhood spread
 (:mod:`elevmap.map.neighbours`), as in the cell's variance: where neighbouring cells disagree (a step, a
 band of points bled over an edge, the far field) a point may well belong to the neighbour's level, so
 its stated sigma over-states what it says about this cell, and weights flatten there, towards an
-equal-weight mean that a few points binned in the wrong cell cannot dominate. Measured (``elevmap
-compare``, 60 frames, seed 0, paper mapper, stairs / boxes): RMSE 28.9 -> 28.8 / 55.4 -> 55.2 mm,
-1-sigma 0.736 -> 0.733 / 0.720 -> 0.719, 2-sigma 0.957 -> 0.957 / 0.925 -> 0.928.
+equal-weight mean that a few points binned in the wrong cell cannot dominate.
+
+Spread: tau^2 of a cell is the DerSimonian-Laird estimate over all the points that reached it since its
+last reset, accepted by the gate or not, with their own weights 1 / sigma_i^2 (the ``info_sum``,
+``info_sq_sum`` and ``scatter`` layers keep its running sums); it counts only where the scatter is
+significant (``spread_alpha``) and large (``spread_ratio``).
+
+Scatter inflation: a frame's information in a cell is divided by the reduced chi-square of its accepted
+points when that is significant, chi2 = sum w_i (z_i - z_mean)^2 / (n - 1) above its 1 - 1e-4 quantile
+(Wilson-Hilferty): points that scatter more than their stated variances allow must not make the cell
+confident.
 
 Change: a single outlier (or a few) is ignored. When a cell's rejected points are at least
 ``change_min_points`` and outnumber its accepted ones, the terrain has changed (a box put down, a
 step): the prior's variance is inflated by the squared distance to the rejected points' mean, so that
 the next frame's points pass the gate and pull the cell over; when the inflated variance exceeds
 ``max_variance``, the cell is re-initialised from the rejected points at once. The inflation comes
-after this frame's accepted points are fused with the prior as it was: inflating first let the few
-accepted points of a frame that looked like a change pull the cell to them at once (a floor cell of
-1616 points at the lower image border, reached in its last frame by 14 points 4-9 cm too near, 3 of
-them inside the gate, read +56 mm). Measured (``elevmap compare``, 60 frames, seed 0, paper mapper;
-stairs / boxes / slope / rough): RMSE 26.7 -> 26.4 / 54.6 -> 54.8 / 29.3 -> 29.2 / 18.8 -> 18.6 mm,
-2-sigma 0.956 -> 0.959 / 0.926 -> 0.928, NLL -2.89 -> -2.90 / -2.33 -> -2.34.
+after this frame's accepted points are fused with the prior as it was: inflating first would let the
+few accepted points of a frame that looks like a change (a well-known cell reached by a handful of
+too-near points, some of them inside the gate) pull the cell to them at once.
 
 Information cap (correlated pixels): with ``max_points_per_frame = n_eff`` a frame adds at most the
 information of n_eff average points to a cell (its weights are scaled by n_eff / n when n > n_eff),
@@ -54,6 +60,8 @@ Parallel accumulation is race-free: the points are cut into ``PARTIALS`` fixed c
 each summed into its own partial grid, and the partial grids are merged per cell in a fixed order,
 so the result is the same bit for bit whatever the thread count. Partial grids are reset lazily
 (a per-cell frame stamp), so a frame costs work only in the cells it touches.
+:func:`fuse_frame_reference` computes the same update with NumPy (bincount); the tests hold the two
+equal.
 """
 
 from __future__ import annotations
@@ -65,6 +73,7 @@ from statistics import NormalDist
 import numpy as np
 from numba import njit, prange
 
+from noise_model.formulas import dersimonian_laird_tau2, reduced_chi2_quantile
 from noise_model.numba_config import JIT, resolve_threads, threads
 
 from .neighbours import ESTIMATORS
@@ -89,28 +98,23 @@ NACC = 18
 
 @dataclass(frozen=True)
 class FusionParams:
-    """Parameters of the measurement update.
+    """Parameters of the measurement update (module docstring; docs/fusion.md; the defaults' figures are
+    in docs/calibration.md).
 
     Attributes
     ----------
     mahalanobis_threshold : float
-        Gate on |z - h| / sqrt(sigma^2 + sigma_p^2) [-].
+        Gate on |z - h| / sqrt(sigma^2 + P) [-].
     min_variance, max_variance : float
-        Clamp of the cell variance [m^2]; above ``max_variance`` a cell becomes unknown: 0.04 (sigma
+        Clamp of the cell variance [m^2]. Above ``max_variance`` a cell becomes unknown: 0.04 (sigma
         20 cm) by default, a consumer's "no height rather than one that uncertain" (``elevmap compare``
         runs every mapper with 1, elevation_mapping_cupy's, so that the ceiling does not decide which
         cells each noise model is scored on; ANYbotics' code uses 9e-4). The floor, (1 mm)^2 (the
         D435's depth unit), is what a D435 can say about the height at a 4 cm cell's centre however
-        many points it fuses; without one a cell of precise near-range points claims 0.2 mm
-        (measured with ``elevmap compare``, before the neighbourhood spread: the stairs' mean NLL
-        3579 with a 1e-8 floor, 68 with 9e-6). It was (3 mm)^2, ANYbotics' default, until the
-        neighbourhood spread took over the cover of binning errors that the floor had given; then
-        the near cells it held were covered at 1 sigma 0.82-0.86 of the time. Measured (60 frames,
-        seed 0, paper mapper, stairs / boxes, Paule-Mandel neighbourhood spread): 1-sigma 0.734 /
-        0.742, 0.728 / 0.728, 0.721 / 0.720 with (3, 1.5, 1 mm)^2; 2-sigma 0.961 / 0.938, 0.960 /
-        0.936, 0.958 / 0.934; mean NLL over the stairs, boxes, slope and rough walks -2.68, -2.73,
-        -2.74. A user whose real D435 adds calibration error the simulation lacks should raise it
-        (``elevmap gap`` fits a depth bias and a static pattern among its effects).
+        many points it fuses: without one a cell of many precise near-range points claims a fraction of
+        a millimetre. The neighbourhood spread covers binning errors, so the floor need not (ANYbotics'
+        default is (3 mm)^2). A user whose real D435 adds calibration error the simulation lacks should
+        raise it (``elevmap gap`` fits a depth bias and a static pattern among its effects).
     min_horizontal_variance : float or None
         Floor of the horizontal variances [m^2]; (resolution / 2)^2 when None (as ANYbotics).
     max_horizontal_variance : float
@@ -130,31 +134,19 @@ class FusionParams:
         their modelled noise allows (chi-square above its 1 - spread_alpha quantile) -> tau^2 > 0
         (DerSimonian-Laird), added to the cell's variance. 0.5 (default): the plain DerSimonian-Laird
         estimator, any excess counts; smaller: only a significant excess. None: no spread (tau^2 = 0).
-        Measured on the simulated stairs / boxes walks (``elevmap compare``, 60 frames): 2-sigma
-        coverage 0.91 / 0.81 with 0.5, 0.90 / 0.79 with 0.1, 0.86 / 0.75 with 1e-3, 0.75 / 0.58 without.
     spread_ratio : float
         The spread counts only where a cell's points scatter about its height more than
         ``spread_ratio`` times their modelled variance (reduced chi-square Q / (n - 1)): a second
         surface in the cell, points bled over an edge. Below, the excess is the noise model
         misjudging its own sigma (the estimated incidence angle's error, unmodelled effects): it
-        averages out in the cell's mean, and adding it as tau^2 made such cells' sigma several times
-        too large. 20 by default; 1: any significant excess counts. Measured (``elevmap compare``, 60
-        frames, seed 0, paper mapper) with the binning of mixed windows (``noise_model.mixed_windows``):
-        the mean NLL over the stairs, boxes, slope and rough walks is -2.065, -2.150, -2.180, -2.190,
-        -2.197, -2.197 with 1.5, 3, 5, 10, 20, 50 (1 / 2-sigma coverage stairs 0.783 / 0.961 ->
-        0.729 / 0.952, boxes 0.765 / 0.933 -> 0.698 / 0.912 from 1.5 to 20): it levels off from 10.
-        Before that binning, when nearer binning everywhere biased the near cells, 1.5 was set (stairs
-        0.728 / 0.932, boxes 0.712 / 0.911).
+        averages out in the cell's mean, and adding it as tau^2 makes such cells' sigma several times
+        too large. 20 by default, where the simulated walks' mean NLL has levelled off; 1: any
+        significant excess counts.
     neighbour_radius : int
         Half-width [cells] of the neighbourhood whose disagreement is added to a cell's variance
         (``neighbour_spread``, see :mod:`elevmap.map.neighbours`); 0: off. 4 (a 9 x 9 window, 0.36 m at
         4 cm) by default. The heights depend on it only through the weights of later points (the
-        module docstring). Measured on the simulated walks (``elevmap compare``, 60 frames, seed 0,
-        paper mapper; stairs / boxes / slope / rough):
-        mean NLL 68.8 / 3.6 / 128 / -2.7 with 0, 32.6 / 0.0 / - / - with 2, 16.5 / -1.0 / 6.4 / -2.7 with
-        4; 2-sigma coverage 0.907 / 0.857 / 0.854 / 0.970 with 0 -> 0.950 / 0.914 / 0.913 / 0.980 with 4
-        (1-sigma 0.77 / 0.72 / 0.73 / 0.81 -> 0.81 / 0.78 / 0.79 / 0.84); measured when it was added,
-        before ``min_points``, ``spread_ratio`` and nearer binning (README: the current figures).
+        module docstring).
     neighbour_estimator : {"paule_mandel", "dersimonian_laird"}
         The estimator of the neighbourhood spread (:mod:`elevmap.map.neighbours`): Paule-Mandel (default),
         or DerSimonian-Laird, which its weights 1 / P make the precise cells' alone.
@@ -162,11 +154,7 @@ class FusionParams:
         Points a cell must have fused (``points`` layer) before it is reported: below, the map keeps and
         fuses it but :meth:`ElevationMap.is_known`, the queries, the exports, the fused map and the scores
         treat it as unknown. A cell one or two pixels have seen holds a tail draw or a sliver of a
-        neighbouring level as often as not. 3 by default; 1 reports every fused cell. Measured on the
-        simulated walks (``elevmap compare``, 60 frames, seed 0, paper mapper, stairs / boxes; 1 -> 3):
-        RMSE 68.6 -> 58.8 / 85.1 -> 70.4 mm, mean NLL 16.5 -> -2.3 / -1.02 -> -1.15, 2-sigma coverage
-        0.950 -> 0.959 / 0.914 -> 0.929, known cells 31.0 -> 28.4 % / 51.9 -> 46.8 %; measured when it
-        was added, before ``spread_ratio`` and nearer binning (README: the current figures).
+        neighbouring level as often as not. 3 by default; 1 reports every fused cell.
     """
 
     mahalanobis_threshold: float = 2.5
@@ -238,6 +226,12 @@ class FusionWorkspace:
 # ---------------------------------------------------------------------------------------------
 # numba
 # ---------------------------------------------------------------------------------------------
+#: noise_model.formulas, compiled: the DerSimonian-Laird tau^2 and the Wilson-Hilferty quantile per
+#: degree of freedom.
+_dersimonian_laird_tau2 = njit(**JIT)(dersimonian_laird_tau2)
+_reduced_chi2_quantile = njit(**JIT)(reduced_chi2_quantile)
+
+
 @njit(**JIT)
 def _spread_update(data, bi, bj, known, h_prior, N, W0, WZ0, WZZ0, WW0, spread_z, ratio):
     """Add a frame's points in the cell to its spread statistics; return the new tau^2.
@@ -271,22 +265,32 @@ def _dl_tau2(excess, n, s1, s2, spread_z, ratio):
     """DerSimonian-Laird tau^2 = (Q - (n - 1)) / (S1 - S2 / S1) from the excess Q - (n - 1), where Q is
     significant (above its 1 - SPREAD_ALPHA quantile under the noise model, Wilson-Hilferty) and the
     points scatter more than ``ratio`` times their modelled variance (Q / (n - 1) > ratio); else 0."""
-    den = s1 - s2 / s1
-    if n < 2.0 or not den > 0.0:           # one point (or equal weights of one): no spread to see
+    if n < 2.0 or not s1 - s2 / s1 > 0.0:           # one point (or the weight of one): no spread to see
         return 0.0
     k = n - 1.0
-    if not excess + k > ratio * k:
+    if not excess + k > ratio * k:                   # Q / (n - 1) > ratio
         return 0.0
-    c = 1.0 - 2.0 / (9.0 * k) + spread_z * math.sqrt(2.0 / (9.0 * k))
-    if not excess + k > k * c * c * c:
+    if not excess + k > _reduced_chi2_quantile(k, spread_z) * k:     # Q > chi2_{n-1, 1 - alpha}
         return 0.0
-    return max(excess, 0.0) / den
+    return _dersimonian_laird_tau2(excess, s1, s2)
 
 
 @njit(**JIT)
-def _nbr_excess(data, bi, bj):
-    """max(neighbour_spread - spread, 0) of a cell (NaN -> 0): what the neighbourhood adds to its variance
-    beyond its own spread; the fusion works on the variance without it."""
+def neighbour_excess(data, bi, bj):
+    """What the neighbourhood adds to a cell's variance beyond its own spread [m^2] (numba).
+
+    The cell's variance is P + max(spread, neighbour_spread), so this is max(neighbour_spread - spread, 0)
+    (NaN spreads count as 0). The gate and the prior of the fusion, and the visibility clean-up's
+    threshold, work on the variance without it: the neighbourhood's disagreement says how uncertain the
+    height at the cell's centre is, not how far the cell's own points may scatter.
+
+    Parameters
+    ----------
+    data : ndarray, shape (len(LAYERS), n, n)
+        The map's layers, buffer order.
+    bi, bj : int
+        Buffer index of the cell.
+    """
     t = data[SPREAD, bi, bj]
     t = t if t > 0.0 else 0.0
     nb = data[NEIGHBOUR_SPREAD, bi, bj]
@@ -305,7 +309,14 @@ def _weight_tau2(data, bi, bj):
 @njit(**JIT)
 def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h, stamp,
                 params, WZZ, W0, WZ0, WZZ0, WW0):
-    """Combine one cell's frame sums with its prior and write the cell (see the module docstring)."""
+    """Combine one cell's frame sums with its prior and write the cell (see the module docstring).
+
+    W, WZ, WZZ, N: sums of w, w z, w z^2 and the count over the frame's accepted points in the cell
+    (w = 1 / (sigma^2 + tau^2)); Wr, WZr, Nr: the same over its rejected points; W0, WZ0, WZZ0, WW0:
+    sums of w0, w0 z, w0 z^2, w0^2 over all its points with their own weights w0 = 1 / sigma^2 (for the
+    spread); zmin .. zmaxr: their extremes; Hx, Hxy, Hy: the accepted points' weighted mean horizontal
+    covariance. ``v`` below is P, the variance of the cell's fused mean.
+    """
     thr, min_var, max_var, min_h, max_h, change_min, cap, inflate = (
         params[0], params[1], params[2], params[3], params[4], params[5], params[6], params[7])
     spread_z = params[8]
@@ -316,16 +327,18 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     if not tau2 >= 0.0:                # NaN (unknown cell)
         tau2 = 0.0
     h_prior = h
-    v = data[VARIANCE, bi, bj] - tau2 - _nbr_excess(data, bi, bj)  # variance of the fused mean
-    if known and tau2 > 0.0 and data[POINTS, bi, bj] > 0.0:   # a mean of n points that scatter by tau^2
-        v = max(v, tau2 * max(N + Nr, 1.0) / data[POINTS, bi, bj])  # in frames of m: tau^2 m / n
+    # P = variance - spread - neighbour excess = variance - max(spread, neighbour_spread)
+    v = data[VARIANCE, bi, bj] - tau2 - neighbour_excess(data, bi, bj)
+    if known and tau2 > 0.0 and data[POINTS, bi, bj] > 0.0:
+        # random-effects prior: a mean of n points that scatter by tau^2, m at a time: P >= tau^2 m / n
+        v = max(v, tau2 * max(N + Nr, 1.0) / data[POINTS, bi, bj])
     if inflate > 0.0 and N >= 2.0:
+        # scatter inflation: chi2 = (WZZ - WZ^2 / W) / (N - 1); W, WZ /= chi2 where chi2 > chi2_{N-1, 1-1e-4} / (N - 1)
         chi2 = (WZZ - WZ * WZ / W) / (N - 1.0)
-        k = N - 1.0           # chi2 > its 1 - 1e-4 quantile (Wilson-Hilferty), per degree of freedom
-        q = 1.0 - 2.0 / (9.0 * k) + CHI2_Z * math.sqrt(2.0 / (9.0 * k))
-        if chi2 > q * q * q:
+        if chi2 > _reduced_chi2_quantile(N - 1.0, CHI2_Z):
             W /= chi2
             WZ /= chi2
+    # information cap: W, WZ *= n_eff / N where N > n_eff
     if cap > 0.0 and N > cap:
         s = cap / N
         W *= s
@@ -339,8 +352,10 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     changed = known and Nr >= change_min and Nr > N
     inflation = 0.0
     if changed:
+        # change: P += (m_r - h)^2 with m_r = WZr / Wr the rejected points' mean, after this frame's fusion;
+        # beyond max_variance the cell restarts from the rejected points: h = m_r, P = 1 / Wr
         mr = WZr / Wr
-        inflation = (mr - h) * (mr - h)      # added after this frame's accepted points are fused
+        inflation = (mr - h) * (mr - h)
         if v + inflation > max_var:
             reset = True
             h = mr
@@ -364,6 +379,7 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
         if spread_z >= 0.0:
             tau2 = _spread_update(data, bi, bj, known, h_prior, N + Nr, W0, WZ0, WZZ0, WW0, spread_z, ratio)
         if known:
+            # P_post = 1 / (1/P + W);  h_post = P_post (h/P + WZ)
             ip = 1.0 / v
             v = 1.0 / (ip + W)
             h = (ip * h + WZ) * v
@@ -371,6 +387,7 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
             data[MAX_HEIGHT, bi, bj] = max(data[MAX_HEIGHT, bi, bj], zmax)
             data[POINTS, bi, bj] += N
         else:
+            # an unknown cell: the frame's weighted mean, P = 1 / W;  h = WZ / W
             v = 1.0 / W
             h = WZ * v
             data[MIN_HEIGHT, bi, bj] = zmin
@@ -391,6 +408,7 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
         v += inflation
     if not updated and not changed:       # only a few rejected points: the cell stays as it was
         return
+    # clamp: P >= min_variance; P > max_variance -> unknown
     v = max(v, min_var)
     if v > max_var:
         for layer in range(data.shape[0]):
@@ -399,6 +417,7 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
         return
     nb = data[NEIGHBOUR_SPREAD, bi, bj]
     nb = nb if (known and not reset and nb > 0.0) else 0.0    # a new or re-initialised cell: none yet
+    # variance = P + max(spread, neighbour_spread)
     data[ELEVATION, bi, bj] = h
     data[VARIANCE, bi, bj] = v + max(tau2, nb)
     data[SPREAD, bi, bj] = tau2
@@ -451,7 +470,7 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
             acc[p, c, A_WZ0] += w0 * zk
             acc[p, c, A_WZZ0] += w0 * zk * zk
             acc[p, c, A_WW0] += w0 * w0
-            if (not np.isnan(h)) and d * d > thr2 * (vk + (data[VARIANCE, bi, bj] - _nbr_excess(data, bi, bj))):
+            if (not np.isnan(h)) and d * d > thr2 * (vk + (data[VARIANCE, bi, bj] - neighbour_excess(data, bi, bj))):
                 acc[p, c, R_W] += w
                 acc[p, c, R_WZ] += w * zk
                 acc[p, c, R_N] += 1.0
@@ -551,7 +570,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     flat = data.reshape(len(LAYERS), n * n)            # a view: writes go to data
     tau2_old = np.where(flat[SPREAD] > 0, flat[SPREAD], 0.0)      # NaN (unknown) -> 0
     nb_old = np.where(flat[NEIGHBOUR_SPREAD] > 0, flat[NEIGHBOUR_SPREAD], 0.0)
-    excess = np.maximum(nb_old - tau2_old, 0.0)      # the neighbourhood's part of the variance (see _nbr_excess)
+    excess = np.maximum(nb_old - tau2_old, 0.0)      # the neighbourhood's part (see neighbour_excess)
     h0, v0 = flat[ELEVATION, c], (flat[VARIANCE] - excess)[c]
     rej = ~np.isnan(h0) & ((z - h0) ** 2 > thr * thr * (var + v0))
     acc = ~rej
@@ -582,8 +601,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         if inflate > 0:
             k = np.maximum(N - 1, 1)
             chi2 = np.where(N >= 2, (WZZ - WZ * WZ / W) / k, 0.0)
-            q = (1.0 - 2.0 / (9.0 * k) + CHI2_Z * np.sqrt(2.0 / (9.0 * k))) ** 3
-            f = np.where(chi2 > q, chi2, 1.0)
+            f = np.where(chi2 > reduced_chi2_quantile(k, CHI2_Z), chi2, 1.0)
             W, WZ = W / f, WZ / f
         if cap > 0:
             s = np.where(N > cap, cap / np.maximum(N, 1), 1.0)
@@ -602,6 +620,7 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         fuse = seen & ~reset & (N > 0)
         fuse_known = fuse & known
         fuse_new = fuse & ~known
+        # P_post = 1 / (1/P + W);  h_post = P_post (h/P + WZ)  (an unknown cell: 1 / W, WZ / W)
         v_post = np.where(fuse_known, 1.0 / (1.0 / v + W), np.where(fuse_new, 1.0 / W, v))
         h_post = np.where(fuse_known, (h / v + WZ) * v_post, np.where(fuse_new, WZ / W, h))
         h_post = np.where(reset, mr, h_post)
@@ -621,9 +640,9 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         den = s1 - s2 / s1
         npts = np.where(fuse_known, flat[POINTS], 0.0) + Nall
         kk = np.maximum(npts - 1.0, 1.0)
-        crit = kk * (1.0 - 2.0 / (9.0 * kk) + spread_z * np.sqrt(2.0 / (9.0 * kk))) ** 3
+        crit = reduced_chi2_quantile(kk, spread_z) * kk
         tau2_new = np.where((spread_z >= 0) & (npts >= 2) & (den > 0) & (q + kk > crit) & (q + kk > ratio * kk),
-                            np.maximum(q, 0.0) / den,
+                            dersimonian_laird_tau2(q, s1, s2),
                             0.0)
     on = spread_z >= 0
     stats = (reset | fuse) & on

@@ -1,15 +1,15 @@
-"""Neighbourhood spread: the disagreement of a cell's neighbours, added to its variance.
+"""Neighbourhood spread: the disagreement of a cell's neighbours, added to its variance (docs/fusion.md).
 
-A cell's fused variance P (``variance`` minus the larger of its two spreads) says how well its points pin down their mean
-if they are independent, unbiased and land in the right cell. Near a step edge and in the far field of
-a D435 they often do not: the depth noise along a grazing ray is decimetres, so points of one level
-land in cells of the other (measured with ``elevmap compare``: cells within 0.4 m of an edge hold
-errors of 0.1-0.2 m with P of (3 mm)^2). Such errors are not visible inside a cell, whose points agree
-with each other, but they are visible between cells: neighbouring heights scatter far more than their
-variances allow.
+A cell's fused variance P (``variance`` minus the larger of its two spreads) says how well its points
+pin down their mean if they are independent, unbiased and land in the right cell. Near a step edge and
+in the far field of a D435 they often do not: the depth noise along a grazing ray is decimetres, so
+points of one level land in cells of the other, and cells near an edge hold errors of decimetres with P
+of millimetres squared. Such errors are not visible inside a cell, whose points agree with each other,
+but they are visible between cells: neighbouring heights scatter far more than their variances allow.
 
 For every known cell c, over the known cells j within ``radius`` cells (a (2 radius + 1)^2 window,
 c included) with weights w_j = 1 / P_j, the DerSimonian-Laird random-effects estimator
+(:func:`noise_model.formulas.dersimonian_laird_tau2`)
 
     m = sum w_j h_j / sum w_j,   Q = sum w_j (h_j - m)^2,
     tau_n^2 = max(Q - (k - 1), 0) / (S1 - S2 / S1),   S1 = sum w_j, S2 = sum w_j^2,
@@ -25,29 +25,28 @@ last root (a warm start) or the DerSimonian-Laird value (Q decreases in tau^2; d
 -sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
 Why: a D435 map's P span four decades (near cells (1 mm)^2, far cells centimetres), and
 DerSimonian-Laird's weights are then the precise cells': in a window of a floor and a box top it sees
-the spread as the few precise cells do, and falls below half the true spread in one window in four
-(``tests/test_neighbours.py``), a cell beside a box made confident. Paule-Mandel weighs the cells by
-1 / (P_j + tau^2), evenly once the spread exceeds their own variances (Veroniki et al. 2016, Res. Synth.
-Methods 7: 55-79, recommend it over DerSimonian-Laird). Measured (``elevmap compare``, 60 frames,
-seed 0, paper mapper, stairs / boxes, (1 mm)^2 floor): 1-sigma / 2-sigma coverage 0.714 / 0.955 and
-0.705 / 0.922 with DerSimonian-Laird, 0.721 / 0.958 and 0.720 / 0.934 with Paule-Mandel; mean NLL
--2.97 / -2.41 -> -2.95 / -2.43. It costs a gather of each cell's window and a few Newton steps: the
-mapper 2.7 ms per frame (``elevmap bench``, 848x480: 8.3 -> 11.0 ms). It is stored as ``neighbour_spread`` and the cell's
-variance becomes P + max(spread, neighbour_spread): the height at the centre of a cell in a window
-whose cells disagree is uncertain by that disagreement. The fusion's gate and prior work on the
-variance without it (:func:`elevmap.map.fusion._nbr_excess`; the visibility clean-up too); a new point's
-weight 1 / (sigma^2 + tau^2) takes tau^2 = max(spread, neighbour_spread), so the heights depend on it
-through the weights of later points only.
+the spread as the few precise cells do, and often falls below half the true spread
+(``tests/map/test_neighbours.py``), which makes a cell beside a box confident. Paule-Mandel weighs the
+cells by 1 / (P_j + tau^2), evenly once the spread exceeds their own variances (Veroniki et al. 2016,
+Res. Synth. Methods 7: 55-79, recommend it over DerSimonian-Laird). It costs a gather of each cell's
+window and a few Newton steps (``elevmap bench``).
+
+The result is stored as ``neighbour_spread`` and the cell's variance becomes P + max(spread,
+neighbour_spread): the height at the centre of a cell in a window whose cells disagree is uncertain by
+that disagreement. The fusion's gate and prior work on the variance without it
+(:func:`elevmap.map.fusion.neighbour_excess`; the visibility clean-up too); a new point's weight
+1 / (sigma^2 + tau^2) takes tau^2 = max(spread, neighbour_spread), so the heights depend on it through
+the weights of later points only.
 
 The window sums are separable (along the rows, then down the columns); heights enter them relative to
-the mean height of the map's known cells (sampled every 8th row and column), so that the sums stay well conditioned however high the map
-lies. Cells with a non-finite or non-positive P contribute nothing. Only the window of cells touched
-by a frame (plus ``radius``) is recomputed: the others' neighbourhoods did not change.
+the mean height of the map's known cells (sampled every 8th row and column), so that the sums stay well
+conditioned however high the map lies. Cells with a non-finite or non-positive P contribute nothing.
+Only the window of cells touched by a frame (plus ``radius``) is recomputed: the others'
+neighbourhoods did not change. :func:`update_neighbour_spread_reference` computes the same thing with
+NumPy (the same sums in the same order, the same Newton steps); the tests hold the two equal.
 
-Measured (``elevmap compare``, 60 frames, seed 0; the README's calibration table): see
-``FusionParams.neighbour_radius``. What it cannot see: a band of cells that agree with each other and
-are all wrong (a sliver of a step's top binned into the floor cell beside it, with nothing of the floor
-seen around it).
+What it cannot see: a band of cells that agree with each other and are all wrong (a sliver of a step's
+top binned into the floor cell beside it, with nothing of the floor seen around it).
 """
 
 from __future__ import annotations
@@ -55,15 +54,22 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from noise_model.formulas import dersimonian_laird_tau2
 from noise_model.numba_config import JIT, resolve_threads, threads
 
 from .layers import ELEVATION, NEIGHBOUR_SPREAD, SPREAD, VARIANCE
 
 __all__ = ["update_neighbour_spread", "update_neighbour_spread_reference", "fused_variance"]
 
+#: Paule-Mandel convergence: |Q(tau^2) - (k - 1)| <= PM_TOL (k - 1).
 PM_TOL = 1e-10
+#: At most this many evaluations of Q per cell.
 PM_MAX_STEPS = 100
+#: The estimators of the neighbourhood spread (``FusionParams.neighbour_estimator``).
 ESTIMATORS = ("paule_mandel", "dersimonian_laird")
+
+#: noise_model.formulas.dersimonian_laird_tau2, compiled.
+_dersimonian_laird_tau2 = njit(**JIT)(dersimonian_laird_tau2)
 
 
 def fused_variance(data) -> np.ndarray:
@@ -236,7 +242,7 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
                 qq = shh - sh * sh / s1
                 den = s1 - s2 / s1
                 if den > 0.0 and qq > k - 1.0:
-                    tau2 = (qq - (k - 1.0)) / den
+                    tau2 = _dersimonian_laird_tau2(qq - (k - 1.0), s1, s2)
                     if paule_mandel:
                         prev = data[NEIGHBOUR_SPREAD, bi, bj]        # the last frame's root: a warm start
                         t0 = prev if (prev > 0.0 and prev < np.inf) else tau2
@@ -403,7 +409,7 @@ def update_neighbour_spread_reference(data, geometry, radius: int = 2, rows=None
         qq = shh - sh * sh / s1
         den = s1 - s2 / s1
         positive = (k >= 2) & (den > 0) & (qq > k - 1)
-        tau2 = np.where(positive, (qq - (k - 1)) / den, 0.0)
+        tau2 = np.where(positive, dersimonian_laird_tau2(qq - (k - 1), s1, s2), 0.0)
     region = np.zeros((n, n), dtype=bool)
     region[i0:i1 + 1, j0:j1 + 1] = True
     if estimator == "paule_mandel":

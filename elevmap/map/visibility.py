@@ -54,8 +54,7 @@ from numba import njit, prange
 
 from noise_model.numba_config import JIT, resolve_threads, threads
 
-from .fusion import PARTIALS
-from .fusion import _nbr_excess
+from .fusion import PARTIALS, neighbour_excess
 from .layers import (
     ELEVATION, LAYERS, NEIGHBOUR_SPREAD, SPREAD, TIME, UNKNOWN_VALUES, UPPER_BOUND, VARIANCE, clear_sums,
 )
@@ -335,7 +334,7 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
         # the cell's own variance, without its neighbourhood's disagreement (which is about where an edge
         # lies, not about whether this cell's height is right)
         if (not np.isnan(h)) and data[TIME, bi, bj] != stamp and cm < h - 3.0 * math.sqrt(
-                data[VARIANCE, bi, bj] - _nbr_excess(data, bi, bj)):
+                data[VARIANCE, bi, bj] - neighbour_excess(data, bi, bj)):
             for layer in range(data.shape[0]):
                 data[layer, bi, bj] = np.nan
             clear_sums(data, bi, bj)
