@@ -1,0 +1,1 @@
+"""Physical D435 (work in progress): active-stereo simulation stages."""
