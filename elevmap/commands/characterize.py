@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import noise_model as nm
-from noise_model.analysis import characterization as ch
+from noise_model.analysis import characterization as ch, planes
 from noise_model.d435 import D435
 
 from ..fileio import check_outputs, json_ready, write_json_atomic
@@ -117,8 +117,8 @@ def _lateral_edge(depth, scale, K, plane, band, ref, W) -> dict:
     image) is cut from every frame; a pixel is on the board when its depth is nearer to the board's plane
     than to what lies behind the edge (the median image beyond the edge, row by row); with nothing behind
     (no depth there), when it is within max(4 sigma, 10 %) of the plane. The count of board pixels per row
-    places the edge (:func:`noise_model.analysis.characterization.edge_positions`); positions are mapped onto the board's
-    plane, across the edge, for the spread in metres.
+    places the edge (:func:`noise_model.analysis.characterization.edge_positions`); positions are mapped onto
+    the board's plane, across the edge, for the spread in metres.
     """
     side = band.side
     rows = band.rows
@@ -133,7 +133,7 @@ def _lateral_edge(depth, scale, K, plane, band, ref, W) -> dict:
     n_win = w_in + w_out
     start = np.clip(start, 0, W - n_win)
     cols = start[:, None] + np.arange(n_win)[None, :]
-    up, vp = ch.normalised_coordinates(K, cols, np.broadcast_to(rows[:, None], cols.shape))
+    up, vp = planes.normalised_coordinates(K, cols, np.broadcast_to(rows[:, None], cols.shape))
     z_pl = plane.depth_at(up, vp)
     if not np.isfinite(z_pl).any():
         return {"reason": f"the {side} edge's rays miss the board's fitted plane"}
@@ -193,8 +193,8 @@ def _lateral_edge(depth, scale, K, plane, band, ref, W) -> dict:
         sat.append(s_)
     pos, sat = np.concatenate(pos), np.concatenate(sat)
     # positions on the board's plane, across the edge [m]
-    u1, v1 = ch.normalised_coordinates(K, c, rows)
-    P1 = ch.points_from_depth(plane.depth_at(u1, v1), u1, v1)
+    u1, v1 = planes.normalised_coordinates(K, c, rows)
+    P1 = planes.points_from_depth(plane.depth_at(u1, v1), u1, v1)
     ok = np.isfinite(P1).all(axis=1)
     if ok.sum() < 2:
         return {"reason": f"the {side} edge's rays miss the board's plane"}
@@ -204,15 +204,15 @@ def _lateral_edge(depth, scale, K, plane, band, ref, W) -> dict:
     if nrm == 0:
         return {"reason": f"the {side} edge is degenerate"}
     across /= nrm
-    u2, _ = ch.normalised_coordinates(K, c + 1.0, rows)
-    P2 = ch.points_from_depth(plane.depth_at(u2, v1), u2, v1)
+    u2, _ = planes.normalised_coordinates(K, c + 1.0, rows)
+    P2 = planes.points_from_depth(plane.depth_at(u2, v1), u2, v1)
     ok2 = ok & np.isfinite(P2).all(axis=1)
     step = (P2[ok2] - P1[ok2]) @ across
     if ok2.any() and np.mean(step) < 0:     # orient: metres grow with the column, as the pixels do
         across, step = -across, -step
     m_per_px = float(np.mean(step)) if ok2.any() else float("nan")
-    upos, vpos = ch.normalised_coordinates(K, pos, np.broadcast_to(rows[None, :], pos.shape))
-    pos_m = ch.points_from_depth(plane.depth_at(upos, vpos), upos, vpos) @ across
+    upos, vpos = planes.normalised_coordinates(K, pos, np.broadcast_to(rows[None, :], pos.shape))
+    pos_m = planes.points_from_depth(plane.depth_at(upos, vpos), upos, vpos) @ across
     if not (np.isfinite(m_per_px) and 0.0 < m_per_px < 1.0):
         return {"reason": f"the board's plane is too oblique at its {side} edge ({m_per_px:.3g} m per px)"}
     out = ch.lateral_noise(pos, sat, rows, m_per_px, position_m=pos_m)
@@ -264,7 +264,7 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
     if not det.ok:
         return {"id": cap.id, "failed": det.reason}
     vv, uu = np.nonzero(det.region_mask)
-    up, vp = ch.normalised_coordinates(K, uu, vv)
+    up, vp = planes.normalised_coordinates(K, uu, vv)
     samples = _to_metres(depth[:, vv, uu], scale).astype(np.float64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -276,7 +276,7 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
     # the region's plane, fitted along the rays to the per-pixel median (robust to frames in which
     # something else, e.g. the board's moving edge, covers a pixel)
     try:
-        pf = ch.fit_plane_rays(med_z[good], up[good], vp[good])
+        pf = planes.fit_plane_rays(med_z[good], up[good], vp[good])
     except ValueError as exc:
         return {"id": cap.id, "failed": f"no plane in the central region ({exc})"}
     plane = pf.plane
@@ -310,7 +310,7 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
         if okf.sum() < 10:
             continue
         try:
-            fit_f = ch.fit_plane_robust(ch.points_from_depth(zf[okf], up[band][okf], vp[band][okf]))
+            fit_f = planes.fit_plane_robust(planes.points_from_depth(zf[okf], up[band][okf], vp[band][okf]))
         except ValueError:
             continue
         stds.append(fit_f.residual_std_m)
@@ -373,7 +373,7 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
                                                              "sigma_z_edge_m")}
     if keep_image:
         tv, tu = np.nonzero(det.target_mask)
-        tup, tvp = ch.normalised_coordinates(K, tu, tv)
+        tup, tvp = planes.normalised_coordinates(K, tu, tv)
         acc = np.zeros(tv.size)
         cnt = np.zeros(tv.size)
         for f0 in range(0, N, _CHUNK_FRAMES):
@@ -384,7 +384,7 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
         with np.errstate(invalid="ignore", divide="ignore"):
             zt = np.where(cnt > 0, acc / cnt, np.nan)
         img = np.full((H, W), np.nan, dtype=np.float32)
-        img[tv, tu] = plane.distance(ch.points_from_depth(zt, tup, tvp))
+        img[tv, tu] = plane.distance(planes.points_from_depth(zt, tup, tvp))
         rec["_plane_distance_image"] = img
         rec["_region_mask"] = det.region_mask
     return rec
@@ -687,7 +687,8 @@ def format_summary(report: dict) -> str:
         for name, v, s_, p in zip(("c0", "c1", "c2", "c_theta"), c, e, pc):
             lines.append(f"  {name:8s} {v:11.6g} +- {s_:.2g}   (paper {p:g})")
         vp = fit["vs_paper"]
-        lines.append(f"  vs the paper where its sigma_z < 5 cm: max {100 * vp['max_rel_diff_where_paper_below_0.05m']:.1f}%"
+        lines.append("  vs the paper where its sigma_z < 5 cm: "
+                     f"max {100 * vp['max_rel_diff_where_paper_below_0.05m']:.1f}%"
                      f", median {100 * vp['median_rel_diff_where_paper_below_0.05m']:.1f}%")
     else:
         lines.append(f"no fit: {report.get('fit_reason')}")

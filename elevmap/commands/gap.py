@@ -1,25 +1,10 @@
 """``elevmap gap``: where the paper's D435 model misses real captures, which effect explains it, how far it shrinks.
 
-The sim-to-real gap diagnosis of issue 7, on a capture set (``shared/specs/capture-set.md``,
-format ``d435-captures/1``):
-
-1. **Simulate** every real capture with the spec's reference simulation of Ahn et al.'s model
-   (:func:`noise_model.analysis.capture_data.simulate_capture`, as many frames as the real capture; capture ``i``
-   always draws from ``default_rng([seed, crc32(id)])``, in every model: common random numbers).
-2. **Compare** real and simulated per statistic and stratum (:mod:`noise_model.analysis.diagnosis`: bias, temporal and
-   spatial standard deviation, correlation length, quantisation lattice, fill rate, residual
-   distribution (W1) and tails, by distance, angle, 3 x 3 image cell and region), each difference
-   normalised by the real-vs-real noise floor (random halves of the real frames; bootstrap over frames,
-   never over pixels).
-3. **Where**: strata and statistics ranked by gap.
-4. **Which**: forward selection over the effects library (:mod:`noise_model.sim.effects`): each candidate is
-   fitted on the *fit* captures (:func:`noise_model.sim.effects.fit_effect`), the one that shrinks the fit
-   gap most is added if it shrinks the *held-out* gap significantly; repeated while the remaining gap
-   is significant; then each selected effect is removed again (ablation).
-5. **How far**: the shrink on held-out captures only (whole captures: ``--heldout IDS``, or ``auto``:
-   the middle third of the distances of each target kind, all angles), what is left and where.
-6. A readable summary (:func:`format_summary`), the JSON report of the spec (``d435-gap/1``, written
-   atomically; extra keys documented in :func:`run_gap`) and an optional rerun recording.
+The command around :func:`noise_model.analysis.diagnosis.diagnose` (the method and the report's keys
+are documented there): it reads a capture set (format ``d435-captures/1``, see
+docs/capture-set-format.md), shows a progress bar, writes the JSON report of format ``d435-gap/1``
+atomically, prints a readable summary (:func:`format_summary`) and writes an optional rerun recording
+(:func:`log_gap_recording`).
 
 ``run_selftest`` checks the whole chain on pseudo-real data (the reference simulation plus known effects at
 random parameters); ``run_realdata`` runs on single real frames whose geometry is a plane fitted to a region.
@@ -27,290 +12,47 @@ random parameters); ``run_realdata`` runs on single real frames whose geometry i
 
 from __future__ import annotations
 
-import json
-import math
+import contextlib
 import time
-import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from noise_model.sim import effects as E
 from noise_model.analysis import diagnosis as G
-from noise_model.analysis.capture_data import CaptureData, CaptureGeometry, check_captures, simulate_capture
-from noise_model.checks import check_names
+from noise_model.analysis.capture_data import CaptureData, CaptureGeometry
+from noise_model.analysis.diagnosis import (
+    FORMAT, SELFTEST_PAIR, CaptureSimulator, diagnose, gap_capture_of, parse_effect_names, plane_geometry,
+    selftest_case, selftest_cases, selftest_geometries, split_captures,
+)
+from noise_model.analysis.planes import fit_plane_ransac
 from noise_model.d435 import D435, SensorModel
 
 from ..fileio import check_outputs, json_ready, write_json_atomic
 
-__all__ = ["FORMAT", "run_gap", "run_selftest", "run_realdata", "diagnose", "format_summary", "format_selftest",
-           "parse_effect_names", "split_captures", "auto_heldout", "CaptureSimulator", "EffectFitter",
-           "gap_capture_of", "json_ready", "SELFTEST_PAIR", "REALDATA_PLANES", "plane_geometry",
-           "selftest_geometries", "realdata_captures", "load_capture_set", "log_gap_recording", "capture_rng"]
-
-FORMAT = "d435-gap/1"
-#: Most ``where`` / ``where_unexplained`` entries written to the report (ranked; the rest are counted).
-MAX_WHERE = 300
-#: The two effects of the selftest's two-effect case.
-SELFTEST_PAIR = ("invalid_band", "correlated_noise")
+# diagnose, split_captures, parse_effect_names, selftest_geometries and SELFTEST_PAIR are the library's
+# (noise_model.analysis.diagnosis), importable from here too for the examples and tests that use them.
+__all__ = ["FORMAT", "run_gap", "run_selftest", "run_realdata", "format_summary", "format_selftest",
+           "REALDATA_PLANES", "realdata_captures", "load_capture_set", "log_gap_recording", "diagnose",
+           "split_captures", "parse_effect_names", "selftest_geometries", "SELFTEST_PAIR"]
 
 
-# ---------------------------------------------------------------------------------------------
-# arguments
-# ---------------------------------------------------------------------------------------------
-def parse_effect_names(effects) -> list[str]:
-    """Candidate effect names: None / ``"all"`` = every effect of the library (canonical order), else a
-    comma-separated string or a sequence of names of :data:`noise_model.sim.effects.EFFECTS`."""
-    if effects is None or (isinstance(effects, str) and effects.strip().lower() in ("", "all")):
-        return list(E.ORDER) + [n for n in E.EFFECTS if n not in E.ORDER]
-    return check_names(effects, "--effects", list(E.EFFECTS), "effect")
-
-
-def _incidence_deg(target: dict) -> float:
-    yaw, pitch = math.radians(float(target.get("yaw_deg") or 0.0)), math.radians(float(target.get("pitch_deg") or 0.0))
-    return math.degrees(math.acos(min(1.0, abs(math.cos(yaw) * math.cos(pitch)))))
-
-
-def _kind_of(g: CaptureGeometry) -> str:
-    if g.kind == "wall":
-        return "wall"
-    return "board+background" if g.background_m is not None else "board"
-
-
-def auto_heldout(geometries: Sequence[CaptureGeometry], distances: dict | None = None) -> tuple[list[str], str]:
-    """The ``auto`` held-out block: per target kind, the captures at the middle third of that kind's
-    distinct distances (all angles); with a single distance, the middle third of its angles.
-
-    Returns
-    -------
-    ids : list of str
-    rule : str
-        The block in words (for the report).
-    """
-    out, parts = [], []
-    kinds: dict = {}
-    for g in geometries:
-        kinds.setdefault(_kind_of(g), []).append(g)
-    for kind, gs in kinds.items():
-        if len(gs) < 2:
-            continue
-        dist = {g.id: (distances or {}).get(g.id, g.distance_m) for g in gs}
-        ds = sorted({round(dist[g.id], 6) for g in gs})
-        if len(ds) >= 2:
-            k = max(1, int(round(len(ds) / 3)))
-            block = ds[(len(ds) - k) // 2:(len(ds) - k) // 2 + k]
-            ids = [g.id for g in gs if round(dist[g.id], 6) in block]
-            parts.append(f"{kind}: distances {block[0]:g}-{block[-1]:g} m (all angles)")
-        else:
-            angs = sorted({round(_incidence_deg(g.target), 6) for g in gs})
-            if len(angs) < 2:
-                continue
-            k = max(1, int(round(len(angs) / 3)))
-            block = angs[(len(angs) - k) // 2:(len(angs) - k) // 2 + k]
-            ids = [g.id for g in gs if round(_incidence_deg(g.target), 6) in block]
-            parts.append(f"{kind}: angles {block[0]:g}-{block[-1]:g} deg at {ds[0]:g} m")
-        if len(ids) < len(gs):
-            out += ids
-    return out, "; ".join(parts) if parts else "none (too few captures to hold any out)"
-
-
-def split_captures(geometries: Sequence[CaptureGeometry], heldout="auto", distances: dict | None = None):
-    """Fit and held-out captures (whole captures).
-
-    Parameters
-    ----------
-    geometries : sequence of CaptureGeometry
-    heldout : ``"auto"``, ``"none"``, a comma-separated string of ids, or a sequence of ids
-
-    Returns
-    -------
-    fit_ids, heldout_ids : list of str
-    rule : str
-
-    Raises
-    ------
-    ValueError
-        Unknown id, or every capture held out.
-    """
-    ids = [g.id for g in geometries]
-    if heldout is None or (isinstance(heldout, str) and heldout.strip().lower() == "auto"):
-        held, rule = auto_heldout(geometries, distances)
-    elif isinstance(heldout, str) and heldout.strip().lower() in ("", "none"):
-        held, rule = [], "none"
-    else:
-        held = check_names(heldout, "--heldout", ids, "capture")
-        rule = "given: " + ", ".join(held)
-    hs = set(held)
-    fit = [i for i in ids if i not in hs]
-    if not fit:
-        raise ValueError("every capture is held out: nothing is left to fit the effects on")
-    return fit, [i for i in ids if i in hs], rule
-
-
-# ---------------------------------------------------------------------------------------------
-# simulation and fits with common random numbers
-# ---------------------------------------------------------------------------------------------
-def capture_rng(seed: int, capture_id: str) -> np.random.Generator:
-    """The generator of a capture's simulation in every model (and in the fits' base simulations)."""
-    return np.random.default_rng([int(seed), zlib.crc32(capture_id.encode("utf-8"))])
-
-
-class CaptureSimulator:
-    """``simulate(ids, effects, n_frames) -> {id: depth_m}``: the reference simulation plus effects.
-
-    Effects are (name, params) pairs, made with :func:`noise_model.sim.effects.make_effect` and applied in
-    :func:`noise_model.sim.effects.canonical_order`; capture ``id`` draws from :func:`capture_rng`, the
-    same generator in every model and in :func:`noise_model.sim.effects.fit_effect`'s base simulations.
-    """
-
-    def __init__(self, geometries: dict, model: SensorModel = D435, seed: int = 0):
-        self.geometries, self.model, self.seed = geometries, model, int(seed)
-
-    def __call__(self, ids, effects, n_frames: int) -> dict:
-        objs = E.canonical_order([E.make_effect(n, **p) for n, p in effects])
-        out = {}
-        for i in ids:
-            g = self.geometries[i]
-            units = simulate_capture(g, int(n_frames), capture_rng(self.seed, i), self.model, objs)
-            out[i] = CaptureData.from_units(g, units).depth_m
-        return out
-
-
-class EffectFitter:
-    """``fit(name, base_effects) -> params`` on the fit captures (base simulations cached per base model)."""
-
-    def __init__(self, fit_real: Sequence[CaptureData], model: SensorModel = D435, seed: int = 0,
-                 rois: dict | None = None):
-        self.real, self.model, self.seed = list(fit_real), model, int(seed)
-        ids = {c.id for c in self.real}
-        # the fits see only each capture's region of interest, as the statistics do
-        self.rois = None if not rois else {k: v for k, v in rois.items() if k in ids}
-        self._cache: dict = {}
-        self._base_key = None
-
-    def __call__(self, name: str, base_effects) -> dict:
-        key = G._model_key(base_effects)
-        if key != self._base_key:                 # a new base model: drop the old base simulations
-            self._cache, self._base_key = {}, key
-        base = [E.make_effect(n, **p) for n, p in base_effects]
-        try:
-            params = E.fit_effect(name, self.real, self.model, base, seed=self.seed, cache=self._cache,
-                                  rois=self.rois)
-        except (ArithmeticError, np.linalg.LinAlgError, IndexError) as exc:   # a fit that cannot cope
-            raise ValueError(f"fit of {name} failed on these captures ({type(exc).__name__}: {exc})") from exc
-        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in params.items()}
-
-
-def gap_capture_of(data: CaptureData | CaptureGeometry, model: SensorModel = D435, roi=None,
-                   distance_m: float | None = None, kind: str | None = None) -> G.GapCapture:
-    """The :class:`noise_model.analysis.diagnosis.GapCapture` of a capture's geometry (nominal render, regions)."""
-    g = getattr(data, "geometry", data)
-    z, th = g.render()
-    return G.make_gap_capture(g.id, z, th, g.regions(model=model), g.K, g.baseline_m,
-                              g.distance_m if distance_m is None else distance_m, _incidence_deg(g.target),
-                              kind or _kind_of(g), model, roi)
-
-
-# ---------------------------------------------------------------------------------------------
-# the diagnosis
-# ---------------------------------------------------------------------------------------------
-def _where(entries: list, limit: int = MAX_WHERE, pad: int = 20) -> list:
-    pos = [e for e in entries if e["gap"] > 0]
-    if len(pos) < pad:
-        pos = entries[:max(pad, len(pos))]
-    return pos[:limit]
-
-
-def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed: int = 0, model: SensorModel = D435,
-             show_progress: bool = False, rois: dict | None = None, distances: dict | None = None,
-             kinds: dict | None = None, real_label: str = "", config: G.SelectionConfig | None = None,
-             n_splits: int = 64, n_boot: int = 64, binning: G.Binning | None = None):
-    """Run the diagnosis on real captures held in memory.
-
-    Parameters
-    ----------
-    real : sequence of CaptureData
-        The real captures (frames as metric depth, NaN = no data).
-    heldout : "auto", "none", ids
-        Held-out captures (see :func:`split_captures`).
-    effects : None, str or sequence of str
-        Candidate effects (:func:`parse_effect_names`); those whose fits need capture kinds the fit
-        captures lack (:data:`noise_model.sim.effects.NEEDS`) are skipped and listed.
-    seed : int
-        Seed of the simulations (common random numbers), the fits' base simulations, the half-splits
-        and the bootstrap.
-    model : SensorModel
-        The reference model.
-    rois, distances, kinds : dict, optional
-        Per capture id: a boolean region of interest (H, W) (only those pixels count), the distance
-        [m] for its distance bin (default: the target's), its kind label.
-    real_label : str
-        What the report's ``real`` says.
-    config : noise_model.analysis.diagnosis.SelectionConfig, optional
-    n_splits, n_boot : int
-        Half-splits of the noise floor and bootstrap replicates over frames.
-
-    Returns
-    -------
-    report : dict
-        The JSON report (see :func:`run_gap`).
-    result : noise_model.analysis.diagnosis.DiagnosisResult
-    """
+@contextlib.contextmanager
+def _model_bar(show: bool):
+    """A tqdm bar stepped once per simulated model: yields the ``progress(message)`` callback of
+    :func:`noise_model.analysis.diagnosis.diagnose`."""
     from tqdm import tqdm
 
-    t0 = time.perf_counter()
-    real = check_captures(real)
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed must be an integer, got {seed!r}")
-    names = parse_effect_names(effects)
-    geoms = {c.id: c.geometry for c in real}
-    fit_ids, held_ids, rule = split_captures([c.geometry for c in real], heldout, distances)
-    by_id = {c.id: c for c in real}
-    fit_real = [by_id[i] for i in fit_ids]
-    candidates, skipped = [], {}
-    for n in names:
-        if E.usable_captures(n, fit_real):
-            candidates.append(n)
-        else:
-            skipped[n] = f"its fit needs {' or '.join(E.NEEDS[n])} captures among the fit captures"
-    caps = [gap_capture_of(c, model, (rois or {}).get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id))
-            for c in real]
-    bar = tqdm(desc="gap", unit="model", disable=not show_progress, total=None)
+    bar = tqdm(desc="gap", unit="model", disable=not show, total=None)
 
-    def progress(msg):
+    def progress(msg: str) -> None:
         bar.set_postfix_str(msg[:40])
         bar.update(1)
 
     try:
-        dg = G.Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
-                         CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed, rois),
-                         binning=binning or G.Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
-                         config=config or G.SelectionConfig(), progress=progress)
-        res = dg.run(candidates)
+        yield progress
     finally:
         bar.close()
-    r = res.report
-    report = {"format": FORMAT, "real": real_label, "split": {"fit": fit_ids, "heldout": held_ids},
-              "baseline": r["baseline"], "where": _where(r["where"]), "effects": r["effects"],
-              "final": {**r["final"], "where_unexplained": _where(r["final"]["where_unexplained"], pad=0)}}
-    report.update({
-        "where_count": sum(1 for e in r["where"] if e["gap"] > 0),
-        "heldout_rule": rule, "validation": r["validation"], "candidates": candidates, "skipped": skipped,
-        "rounds": r["rounds"], "stop_reason": r["stop_reason"],
-        "floor": {"source": r["floor_source"], "n_splits": int(n_splits), "n_boot": int(n_boot),
-                  "z_floor": G.Z_FLOOR, "min_floor": dict(G.MIN_FLOOR),
-                  "alpha": (config or G.SelectionConfig()).alpha},
-        "unavailable": r["unavailable"], "statistics": dict(G.STAT_UNITS), "by": r["by"], "by_final": r["by_final"],
-        "frames": r["frames"], "sim_frames": r["sim_frames"], "seed": int(seed), "model": model.to_dict(),
-        "binning": {"distance_width_m": dg.binning.distance_width_m, "angle_width_deg": dg.binning.angle_width_deg},
-        "captures": [{"id": c.id, "kind": c.kind, "distance_m": c.distance_m, "angle_deg": c.angle_deg,
-                      "frames": int(by_id[c.id].n_frames), "heldout": c.id in held_ids} for c in caps],
-        "simulated_captures": dg.n_simulated, "seconds": time.perf_counter() - t0,
-    })
-    if "frames_cut" in r:
-        report["frames_cut"] = r["frames_cut"]
-    return json_ready(report), res
 
 
 def load_capture_set(real_dir):
@@ -344,6 +86,7 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     effects : comma-separated names or None (all)
     seed : int
     show_progress : bool
+        A progress bar over the simulated models.
     model : SensorModel
     config : noise_model.analysis.diagnosis.SelectionConfig, optional
     n_splits, n_boot : int
@@ -353,27 +96,15 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     Returns
     -------
     dict
-        The report. The keys of the spec (``format``, ``real``, ``split``, ``baseline``, ``where``,
-        ``effects``, ``final``) plus: ``baseline.gap_all``, ``p_value``, ``significant_fit``,
-        ``significant_heldout``, ``null_gap_p95`` (the 95th percentile of real-vs-real aggregate gaps);
-        each ``where`` entry's ``z`` (difference / floor), ``floor`` (sigma_0, units of the statistic)
-        and ``weight`` (its share of the aggregate); each effect's ``shrink_test`` (paired bootstrap)
-        and ``ablation`` (``gap_heldout_without``, ``confirmed``); ``final.gap_fit``, ``gap_all``,
-        ``significant``; ``rounds`` (every candidate's fitted parameters and fit gap per round),
-        ``stop_reason``, ``candidates``, ``skipped`` (effects whose fits need captures the set lacks),
-        ``heldout_rule``, ``validation``, ``floor`` (source, splits, replicates, thresholds),
-        ``unavailable`` (statistics that could not be computed, and why), ``statistics`` (units),
-        ``by`` / ``by_final`` (mean gap and share per statistic, region, image cell, distance and
-        angle bin, before / after), ``captures``, ``frames``, ``sim_frames``, ``seed``, ``model``,
-        ``binning``, ``mismatches`` (recordings whose intrinsics differ from captures.json),
-        ``seconds``, and ``rrd`` when a recording was written.
+        The report of :func:`noise_model.analysis.diagnosis.diagnose` plus ``mismatches`` (recordings
+        whose intrinsics differ from captures.json) and ``rrd`` when a recording was written.
     """
     jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite,
                            inputs=[Path(real_dir) / "captures.json"]).values()
     cs, real = load_capture_set(real_dir)
-    report, res = diagnose(real, heldout=heldout, effects=effects, seed=seed, model=model,
-                           show_progress=show_progress, real_label=str(real_dir), config=config, n_splits=n_splits,
-                           n_boot=n_boot)
+    with _model_bar(show_progress) as progress:
+        report, res = diagnose(real, heldout=heldout, effects=effects, seed=seed, model=model, progress=progress,
+                               real_label=str(real_dir), config=config, n_splits=n_splits, n_boot=n_boot)
     report["mismatches"] = list(cs.mismatches)
     if rp is not None:
         log_gap_recording(rp, report, res, real, model, seed)
@@ -474,92 +205,6 @@ def format_summary(report: dict, top: int = 8) -> str:
     return "\n".join(out)
 
 
-# ---------------------------------------------------------------------------------------------
-# selftest
-# ---------------------------------------------------------------------------------------------
-def _selftest_camera(width: int, height: int, model: SensorModel) -> dict:
-    K = model.intrinsics(width, height)
-    return {"width": int(width), "height": int(height), "fx": float(K[0, 0]), "fy": float(K[1, 1]),
-            "ppx": float(K[0, 2]), "ppy": float(K[1, 2]), "depth_scale": 0.001, "baseline_m": model.baseline_m}
-
-
-def selftest_geometries(kind: str = "wall", width: int = 424, height: int = 240,
-                        model: SensorModel = D435) -> list[CaptureGeometry]:
-    """The selftest's captures: 18 walls (0.5 to 2.0 m every 0.3 m x yaw 0, 30, 55 deg), or 12 boards
-    0.60 x 0.90 m before a wall at 3 m (0.6 to 2.1 m every 0.3 m x yaw 0, 30 deg), the sets
-    :data:`noise_model.sim.effects.FIT_TOLERANCE` is stated for."""
-    cam = _selftest_camera(width, height, model)
-    if kind == "wall":
-        return [CaptureGeometry.from_capture_set_entry(cam, {"id": f"wall_z{d:.2f}_y{y:02d}", "target": {
-            "kind": "wall", "distance_m": d, "yaw_deg": float(y), "pitch_deg": 0.0}})
-            for d in (0.5, 0.8, 1.1, 1.4, 1.7, 2.0) for y in (0, 30, 55)]
-    if kind == "board":
-        return [CaptureGeometry.from_capture_set_entry(cam, {"id": f"board_z{d:.2f}_y{y:02d}", "target": {
-            "kind": "board", "distance_m": d, "yaw_deg": float(y), "pitch_deg": 0.0, "width_m": 0.6,
-            "height_m": 0.9}, "background_m": 3.0}) for d in (0.6, 0.9, 1.2, 1.5, 1.8, 2.1) for y in (0, 30)]
-    raise ValueError(f"kind must be 'wall' or 'board', got {kind!r}")
-
-
-def _selftest_cases(effects, seed: int) -> list[dict]:
-    names = parse_effect_names(effects)
-    cases = []
-    for k, n in enumerate(names):
-        p = E.draw_params(n, np.random.default_rng([int(seed), 1, k]))
-        cases.append({"case": n, "effects": [(n, p)]})
-    cases.append({"case": "none", "effects": []})
-    pair = [(n, E.draw_params(n, np.random.default_rng([int(seed), 2, j]))) for j, n in enumerate(SELFTEST_PAIR)]
-    cases.append({"case": "+".join(SELFTEST_PAIR), "effects": pair})
-    return cases
-
-
-def _selftest_case(case: dict, seed: int, n_frames: int, width: int, height: int, model: SensorModel,
-                   index: int, numba_threads: int | None = None) -> dict:
-    """One selftest case: build the pseudo-real captures, diagnose them blind, check the outcome."""
-    if numba_threads is not None:
-        import numba
-
-        numba.set_num_threads(int(numba_threads))
-    t0 = time.perf_counter()
-    needs_board = any("board+background" in E.NEEDS[n] for n, _ in case["effects"])
-    geoms = selftest_geometries("board" if needs_board else "wall", width, height, model)
-    objs = E.canonical_order([E.make_effect(n, **p) for n, p in case["effects"]])
-    real = []
-    for g in geoms:
-        rng = np.random.default_rng([int(seed) + 1_000_003, index, zlib.crc32(g.id.encode("utf-8"))])
-        real.append(CaptureData.from_units(g, simulate_capture(g, int(n_frames), rng, model, objs)))
-    report, _ = diagnose(real, heldout="auto", effects=None, seed=int(seed), model=model, show_progress=False,
-                         real_label=f"selftest:{case['case']}")
-    selected = [e["name"] for e in report["effects"]]
-    row = {"case": case["case"], "captures": f"{len(geoms)} {'boards' if needs_board else 'walls'} x {n_frames} "
-                                              f"frames {width}x{height}",
-           "true": {n: p for n, p in case["effects"]}, "selected": selected,
-           "fitted": {e["name"]: e["params"] for e in report["effects"]},
-           "baseline_gap_heldout": report["baseline"]["gap_heldout"], "significant": report["baseline"]["significant"],
-           "shrink_heldout": report["final"]["shrink_heldout"], "stop_reason": report["stop_reason"],
-           "round1": [c["name"] for c in report["rounds"][0]["candidates"][:3]] if report["rounds"] else [],
-           "seconds": time.perf_counter() - t0}
-    checks = {}
-    if not case["effects"]:
-        checks["not_significant"] = not report["baseline"]["significant"]
-        checks["nothing_selected"] = not selected
-    elif len(case["effects"]) == 1:
-        name, true = case["effects"][0]
-        checks["ranked_first"] = bool(selected) and selected[0] == name
-        if checks["ranked_first"]:
-            ok, errs = E.within_tolerance(name, true, row["fitted"][name])
-            row["param_errors"] = {k: {"error": e, "allowed": a} for k, (e, a) in errs.items()}
-        else:
-            ok = False
-        checks["params_within_tolerance"] = bool(ok)
-        checks["shrink_heldout_ge_0.6"] = row["shrink_heldout"] >= 0.6
-    else:
-        checks["all_found"] = all(n in selected for n, _ in case["effects"])
-        checks["shrink_heldout_ge_0.6"] = row["shrink_heldout"] >= 0.6
-    row["checks"] = checks
-    row["passed"] = all(checks.values())
-    return json_ready(row)
-
-
 def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 424, height: int = 240,
                  show_progress: bool = True, json_path=None, n_jobs: int = 1, model: SensorModel = D435,
                  overwrite: bool = False) -> dict:
@@ -571,7 +216,7 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
     :data:`noise_model.sim.effects.PARAM_RANGES` (seeded by ``seed``; the diagnosis is not given them); the
     diagnosis runs blind over all candidate effects with the ``auto`` held-out block and must rank the
     effect first (first selected), recover its parameters within
-    :data:`noise_model.sim.effects.FIT_TOLERANCE` and shrink the held-out gap by at least 60 %. With no
+    :data:`noise_model.analysis.effect_fits.FIT_TOLERANCE` and shrink the held-out gap by at least 60 %. With no
     effect the baseline must not be significant and nothing may be selected; with the two effects of
     :data:`SELFTEST_PAIR` both must be selected.
 
@@ -592,10 +237,10 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
     from tqdm import tqdm
 
     t0 = time.perf_counter()
-    cases = _selftest_cases(effects, seed)
+    cases = selftest_cases(effects, seed)
     jp = check_outputs({"json_path": json_path}, overwrite)["json_path"]
     if int(n_jobs) <= 1:
-        rows = [_selftest_case(c, seed, n_frames, width, height, model, i)
+        rows = [selftest_case(c, seed, n_frames, width, height, model, i)
                 for i, c in enumerate(tqdm(cases, desc="selftest", unit="case", disable=not show_progress))]
     else:
         import multiprocessing as mp
@@ -603,7 +248,7 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
 
         ctx = mp.get_context("spawn")
         with ProcessPoolExecutor(max_workers=int(n_jobs), mp_context=ctx) as ex:
-            futs = [ex.submit(_selftest_case, c, seed, n_frames, width, height, model, i, 1)
+            futs = [ex.submit(selftest_case, c, seed, n_frames, width, height, model, i, 1)
                     for i, c in enumerate(cases)]
             rows = [f.result() for f in tqdm(futs, desc="selftest", unit="case", disable=not show_progress)]
     out = {"passed": all(r["passed"] for r in rows), "rows": rows,
@@ -736,8 +381,9 @@ def log_gap_recording(path, report: dict, res: G.DiagnosisResult, real: Sequence
 # ---------------------------------------------------------------------------------------------
 # real single frames: geometry from a plane fitted to a region
 # ---------------------------------------------------------------------------------------------
-#: Planar regions of the genuine D435 frames in ``shared/realdata`` (rows and columns are half-open pixel
-#: ranges of the frame; the regions that touch column 0 contain the left invalid band).
+#: Planar regions of the genuine D435 frames of ``elevmap gap --realdata DIR`` (``file`` is relative to DIR;
+#: rows and columns are half-open pixel ranges of the frame; the regions that touch column 0 contain the
+#: left invalid band).
 REALDATA_PLANES = (
     {"id": "opf848_board", "file": "opf_d435i_viewer_raw/001_big_depth.raw", "rows": (20, 175), "cols": (300, 430),
      "what": "drawing board on an easel at ~1.63 m, 848x480 (the region of its PROVENANCE.md without the easel's "
@@ -753,32 +399,6 @@ REALDATA_PLANES = (
      "cols": (0, 300), "what": "painted wall at ~1.8 m, 640x480 (librealsense's unit-test .bag), with the "
                                "left invalid band"},
 )
-
-
-def plane_geometry(capture_id: str, plane: G.PlaneFit, K, width: int, height: int, depth_scale: float,
-                   baseline_m: float = D435.baseline_m) -> CaptureGeometry:
-    """A capture-set wall whose plane is a fitted plane n . X = c (c >= 0).
-
-    The wall's centre is where the plane crosses the optical axis, distance_m = c / n_z; yaw =
-    atan2(n_x, n_z), pitch = -asin(n_y), so that its normal R_y(yaw) R_x(pitch) e_z is n.
-
-    Raises
-    ------
-    ValueError
-        A plane that does not cross the optical axis in front of the camera (n_z <= 0, e.g. a floor
-        seen by a camera looking slightly up): it is not a capture-set target.
-    """
-    n = np.asarray(plane.normal, dtype=np.float64)
-    if n[2] <= 1e-3 or plane.offset_m / n[2] > 100.0:
-        raise ValueError(f"{capture_id}: the fitted plane (normal {np.round(n, 4).tolist()}, incidence "
-                         f"{plane.incidence_deg:.1f} deg) does not cross the optical axis within 100 m in front of "
-                         "the camera, so it is not a capture-set target")
-    target = {"kind": "wall", "distance_m": float(plane.offset_m / n[2]),
-              "yaw_deg": math.degrees(math.atan2(n[0], n[2])), "pitch_deg": -math.degrees(math.asin(float(n[1])))}
-    camera = {"width": int(width), "height": int(height), "fx": float(K[0, 0]), "fy": float(K[1, 1]),
-              "ppx": float(K[0, 2]), "ppy": float(K[1, 2]), "depth_scale": float(depth_scale),
-              "baseline_m": float(baseline_m)}
-    return CaptureGeometry.from_capture_set_entry(camera, {"id": capture_id, "target": target})
 
 
 def _read_realdata_frame(root: Path, rel: str):
@@ -802,9 +422,9 @@ def _read_realdata_frame(root: Path, rel: str):
 def realdata_captures(root, planes=REALDATA_PLANES, model: SensorModel = D435):
     """Plane captures of the genuine frames: (captures, rois, distances, notes, skipped).
 
-    Each region's plane is fitted (:func:`noise_model.analysis.diagnosis.fit_plane`); the capture is that plane as a
-    wall (:func:`plane_geometry`) with the real frame, and only the region's pixels count. Its
-    distance bin is the median true depth over the region.
+    Each region's plane is fitted (:func:`noise_model.analysis.planes.fit_plane_ransac`); the capture is that
+    plane as a wall (:func:`noise_model.analysis.diagnosis.plane_geometry`) with the real frame, and only the
+    region's pixels count. Its distance bin is the median true depth over the region.
     """
     root = Path(root)
     caps, rois, dists, notes, skipped = [], {}, {}, {}, {}
@@ -819,7 +439,7 @@ def realdata_captures(root, planes=REALDATA_PLANES, model: SensorModel = D435):
         roi[r0:r1, c0:c1] = True
         depth = np.where(units > 0, units * scale, np.nan)
         try:
-            plane = G.fit_plane(depth, K, roi)
+            plane = fit_plane_ransac(depth, K, roi)
             g = plane_geometry(spec["id"], plane, K, W, H, scale, model.baseline_m)
         except ValueError as exc:
             skipped[spec["id"]] = str(exc)
@@ -840,7 +460,8 @@ def realdata_captures(root, planes=REALDATA_PLANES, model: SensorModel = D435):
 def run_realdata(root, json_path=None, rrd_path=None, effects=None, seed: int = 0, heldout="none",
                  show_progress: bool = True, model: SensorModel = D435, planes=REALDATA_PLANES,
                  overwrite: bool = False) -> dict:
-    """The diagnosis on the genuine single D435 frames of ``shared/realdata`` (no known target).
+    """The diagnosis on genuine single D435 frames (no known target): the folder ``root`` of recordings holds
+    the files of ``planes``.
 
     Every region of ``planes`` becomes a capture whose geometry is the plane fitted to it; one frame
     each, so the temporal statistics are unavailable and the noise floor comes from the reference
@@ -863,9 +484,10 @@ def run_realdata(root, json_path=None, rrd_path=None, effects=None, seed: int = 
     if not caps:
         raise ValueError(f"{root}: no usable plane ({skipped})")
     binning = G.Binning(distance_width_m=0.1)       # the planes' median depths are 0.1-0.2 m apart
-    report, res = diagnose(caps, heldout=heldout, effects=effects, seed=seed, model=model,
-                           show_progress=show_progress, rois=rois, distances=dists,
-                           kinds={c.id: "plane" for c in caps}, real_label=str(root), binning=binning)
+    with _model_bar(show_progress) as progress:
+        report, res = diagnose(caps, heldout=heldout, effects=effects, seed=seed, model=model, progress=progress,
+                               rois=rois, distances=dists, kinds={c.id: "plane" for c in caps},
+                               real_label=str(root), binning=binning)
     report["planes"] = notes
     report["skipped_planes"] = skipped
     report = json_ready(report)

@@ -1,17 +1,17 @@
 """Characterise a depth camera the way Ahn et al. (2019) did: the maths, on plain arrays.
 
 A capture is N depth frames of a planar target (a board or a wall) seen by a camera on a tripod
-(capture-set format ``d435-captures/1``). The image processing that finds the target lives in
-:mod:`noise_model.analysis.detection`; this module turns the pixels it selects into the paper's figures:
+(capture-set format ``d435-captures/1``, see docs/capture-set-format.md). The image processing that
+finds the target lives in :mod:`noise_model.analysis.detection` and the plane fits in
+:mod:`noise_model.analysis.planes`; this module turns the pixels the detection selects into the
+paper's figures:
 
-* **Plane fits** (:func:`fit_plane`, :func:`fit_plane_robust`): total least squares (SVD) of camera-frame
-  points, with inliers within 2 % of the depth (RANSAC-style threshold) for single-frame residuals.
 * **Axial noise** (:func:`axial_noise`, the paper's section IV): the pixel-wise temporal standard
   deviation of each depth value about a plane fitted to the central region, aggregated robustly over
   the region's pixels. The deviation is measured *along the pixel's ray in depth* (z - z_plane), the
   quantity the model's sigma_z describes (``z = z_true + N(0, sigma_z^2)`` along the optical axis, see
-  ``shared/specs/capture-set.md``); the orthogonal point-to-plane distance of the same deviation is
-  smaller by |n . (u', v', 1)| (cos theta on the optical axis) and is reported beside it.
+  docs/noise-model.md); the orthogonal point-to-plane distance of the same deviation is smaller by
+  |n . (u', v', 1)| (cos theta on the optical axis) and is reported beside it.
 * **Lateral noise** (:func:`edge_positions`, :func:`lateral_noise`): the spread of a board's left or
   right edge pixels about a line fitted along the edge over all frames, in pixels and in metres along
   the board (across the edge); sigma_L / sigma_R over many captures by :func:`lateral_percentile`.
@@ -36,19 +36,14 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import optimize, stats
 
-from ..checks import check_intrinsics, check_points, check_positive_scalar
+from ..checks import check_positive_scalar
 from ..d435 import D435, SensorModel, expected_rms_error
+from ..formulas import angle_gain, dersimonian_laird_tau2, sigma_z_from_gain
 from ..sim.targets import target_rotation
+from .planes import Plane
 
 __all__ = [
-    "Plane",
-    "PlaneFit",
     "AxialFit",
-    "fit_plane",
-    "fit_plane_robust",
-    "fit_plane_rays",
-    "normalised_coordinates",
-    "points_from_depth",
     "axial_noise",
     "edge_positions",
     "lateral_noise",
@@ -59,251 +54,11 @@ __all__ = [
     "axial_model",
     "fit_axial_model",
     "model_from_fit",
-    "INLIER_REL",
     "LATERAL_PERCENTILE",
 ]
 
-#: Inlier threshold of the single-frame plane fits, relative to the median depth (2 %, as the
-#: realdata figures were measured).
-INLIER_REL = 0.02
 #: sigma_L and sigma_R are this percentile of the captures' lateral noise (the paper's choice).
 LATERAL_PERCENTILE = 90.0
-
-
-# ------------------------------------------------------------------------------------------------
-# planes
-
-
-@dataclass(frozen=True)
-class Plane:
-    """The plane n . p = offset_m in the camera frame.
-
-    Attributes
-    ----------
-    normal : ndarray, shape (3,)
-        Unit normal, oriented away from the camera (n_z >= 0).
-    offset_m : float
-        n . p for any point p of the plane [m]; > 0 for a plane in front of the camera.
-    """
-
-    normal: np.ndarray
-    offset_m: float
-
-    @property
-    def theta_rad(self) -> float:
-        """Angle between the normal and the optical axis [rad], in [0, pi/2]."""
-        return float(math.acos(min(1.0, abs(float(self.normal[2])))))
-
-    def depth_at(self, up, vp) -> np.ndarray:
-        """Depth z [m] where the rays of normalised pixels (u', v') hit the plane; NaN where they
-        miss it or hit it behind the camera."""
-        up = np.asarray(up, dtype=np.float64)
-        vp = np.asarray(vp, dtype=np.float64)
-        n = self.normal
-        den = n[0] * up + n[1] * vp + n[2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = self.offset_m / den
-        return np.where(np.isfinite(z) & (z > 0), z, np.nan)
-
-    def distance(self, points) -> np.ndarray:
-        """Signed orthogonal distance [m] of points (..., 3) to the plane (> 0 beyond it)."""
-        p = np.asarray(points, dtype=np.float64)
-        return p @ self.normal - self.offset_m
-
-
-@dataclass(frozen=True)
-class PlaneFit:
-    """A robust plane fit of one set of points.
-
-    Attributes
-    ----------
-    plane : Plane
-    inliers : ndarray of bool, shape (M,)
-        Points within ``threshold_m`` of the plane.
-    threshold_m : float
-        Inlier threshold [m] (``inlier_rel`` times the median depth).
-    residual_std_m : float
-        Root mean square orthogonal distance of the inliers to the plane [m].
-    residual_mad_sigma_m : float
-        1.4826 times the median absolute distance of the inliers [m] (a robust standard deviation).
-    """
-
-    plane: Plane
-    inliers: np.ndarray
-    threshold_m: float
-    residual_std_m: float
-    residual_mad_sigma_m: float
-
-    @property
-    def n_inliers(self) -> int:
-        return int(self.inliers.sum())
-
-
-def _check_points3(points, name="points_cam", min_points=3) -> np.ndarray:
-    """:func:`noise_model.checks.check_points`, and at least ``min_points`` of them (a plane needs 3)."""
-    p = check_points(points, name)
-    if p.shape[0] < min_points:
-        raise ValueError(f"{name} needs at least {min_points} points for a plane, got {p.shape[0]}")
-    return p
-
-
-def _tls_plane(p: np.ndarray) -> Plane:
-    c = p.mean(axis=0)
-    _, _, vt = np.linalg.svd(p - c, full_matrices=False)
-    n = vt[-1]
-    if n[2] < 0:
-        n = -n
-    return Plane(n / np.linalg.norm(n), float(n @ c))
-
-
-def fit_plane(points) -> Plane:
-    """Total-least-squares plane of camera-frame points (SVD of the centred points).
-
-    Parameters
-    ----------
-    points : array_like, shape (M, 3)
-        Camera-frame points [m], finite, M >= 3.
-
-    Returns
-    -------
-    Plane
-    """
-    return _tls_plane(_check_points3(points))
-
-
-def fit_plane_robust(points, inlier_rel: float = INLIER_REL, max_iter: int = 30) -> PlaneFit:
-    """Plane fit that ignores points off the plane (objects in front of or behind it, flying pixels).
-
-    The inliers are the points within ``inlier_rel`` x (median depth) of the plane, refitted by total
-    least squares until they no longer change (the threshold of the realdata figures, which were
-    measured with RANSAC and an SVD refit). The start is deterministic instead of random: a fit to all
-    points, then inliers within 6 median absolute distances, the threshold halved at each refit down to
-    the final one, so a large fraction of off-plane points does not capture the fit.
-
-    Parameters
-    ----------
-    points : array_like, shape (M, 3)
-        Camera-frame points [m], finite, z > 0.
-    inlier_rel : float
-        Inlier threshold relative to the median depth (default 2 %).
-    max_iter : int
-        Largest number of refits.
-
-    Returns
-    -------
-    PlaneFit
-    """
-    p = _check_points3(points)
-    if np.any(p[:, 2] <= 0):
-        raise ValueError("points_cam must lie in front of the camera (z > 0)")
-    rel = check_positive_scalar(inlier_rel, "inlier_rel", upper=1.0)
-    thr = rel * float(np.median(p[:, 2]))
-    plane = _tls_plane(p)
-    d = np.abs(plane.distance(p))
-    # shrink from a generous threshold (robust against a large fraction of off-plane points)
-    scale = max(4.0 * 1.4826 * float(np.median(d)), thr)
-    inl = d <= scale
-    for _ in range(int(max_iter)):
-        if inl.sum() < 3:
-            break
-        plane = _tls_plane(p[inl])
-        d = np.abs(plane.distance(p))
-        scale = max(thr, 0.5 * scale)
-        new = d <= scale
-        if scale == thr and np.array_equal(new, inl):
-            break
-        inl = new
-    if inl.sum() < 3:
-        raise ValueError("no plane found: fewer than 3 points lie within the inlier threshold")
-    di = plane.distance(p[inl])
-    return PlaneFit(plane, inl, thr, float(np.sqrt(np.mean(di * di))),
-                    float(1.4826 * np.median(np.abs(di - np.median(di)))))
-
-
-def fit_plane_rays(z_m, up, vp, inlier_rel: float = INLIER_REL, n_sigma: float = 4.0,
-                   max_iter: int = 30) -> PlaneFit:
-    """Plane fit by least squares *along the pixels' rays*, for depth whose noise is along the rays.
-
-    A plane n . p = d seen through a pinhole is linear in inverse depth: 1/z = alpha u' + beta v' + gamma,
-    with noise-free regressors (u', v'). Each step solves that linear system with rows weighted by
-    z_plane^2 (so the residual is, to first order, the depth error z - z_plane, the quantity the noise
-    model describes); the weights come from the previous step's plane, not from the noisy depths. Total
-    least squares (:func:`fit_plane_robust`) is the right fit for isotropic noise but tilts towards the
-    rays when the depth noise is large against the region's extent (a narrow strip of an oblique board).
-
-    Inliers: |z - z_plane| <= max(inlier_rel x median depth, n_sigma x robust sigma of the residuals),
-    narrowed from a generous start as in :func:`fit_plane_robust`.
-
-    Parameters
-    ----------
-    z_m : array_like, shape (M,)
-        Depths [m] (finite, > 0).
-    up, vp : array_like, shape (M,)
-        Normalised pixel coordinates.
-
-    Returns
-    -------
-    PlaneFit
-        ``residual_std_m`` and ``residual_mad_sigma_m`` are of the depth residuals z - z_plane [m].
-    """
-    z = np.asarray(z_m, dtype=np.float64).ravel()
-    up = np.asarray(up, dtype=np.float64).ravel()
-    vp = np.asarray(vp, dtype=np.float64).ravel()
-    if not (z.shape == up.shape == vp.shape):
-        raise ValueError(f"z_m, up and vp must have the same shape, got {z.shape}, {up.shape}, {vp.shape}")
-    if z.size < 3 or not np.all(np.isfinite(z)) or np.any(z <= 0):
-        raise ValueError("z_m must hold at least 3 finite depths > 0 [m]")
-    if float(z.max()) > 100.0:
-        raise ValueError(f"z_m holds values up to {float(z.max()):.1f}: depth must be in metres")
-    rel = check_positive_scalar(inlier_rel, "inlier_rel", upper=1.0)
-    A = np.stack([up, vp, np.ones_like(up)], axis=1)
-    w_obs = 1.0 / z
-    zw = z.copy()
-    inl = np.ones(z.size, dtype=bool)
-    thr0 = rel * float(np.median(z))
-    scale = np.inf
-    coef = None
-    for it in range(int(max_iter)):
-        if inl.sum() < 3:
-            break
-        W2 = zw[inl] ** 2
-        coef, *_ = np.linalg.lstsq(A[inl] * W2[:, None], w_obs[inl] * W2, rcond=None)
-        den = A @ coef
-        with np.errstate(divide="ignore", invalid="ignore"):
-            zp = np.where(den > 0, 1.0 / den, np.nan)
-        r = z - zp
-        ok = np.isfinite(r)
-        zw = np.where(np.isfinite(zp), zp, z)
-        ri = r[inl & ok]
-        sig = 1.4826 * float(np.median(np.abs(ri - np.median(ri)))) if ri.size else 0.0
-        target = max(thr0, n_sigma * sig)
-        scale = 4.0 * target if not np.isfinite(scale) else max(target, 0.5 * scale)
-        new = ok & (np.abs(r) <= scale)
-        if scale == target and np.array_equal(new, inl) and it > 0:
-            break
-        inl = new
-    if coef is None or inl.sum() < 3:
-        raise ValueError("no plane found: fewer than 3 points lie within the inlier threshold")
-    g = float(np.linalg.norm(coef))
-    if not np.isfinite(g) or g == 0 or coef[2] <= 0:
-        raise ValueError("no plane in front of the camera fits these depths")
-    plane = Plane(coef / g, 1.0 / g)
-    r = (z - plane.depth_at(up, vp))[inl]
-    return PlaneFit(plane, inl, float(scale), float(np.sqrt(np.mean(r * r))),
-                    float(1.4826 * np.median(np.abs(r - np.median(r)))))
-
-
-def normalised_coordinates(K, us, vs) -> tuple[np.ndarray, np.ndarray]:
-    """(u', v') = ((u - cx) / fx, (v - cy) / fy) of pixel columns ``us`` and rows ``vs`` [px]."""
-    K = check_intrinsics(K)
-    return ((np.asarray(us, dtype=np.float64) - K[0, 2]) / K[0, 0],
-            (np.asarray(vs, dtype=np.float64) - K[1, 2]) / K[1, 1])
-
-
-def points_from_depth(z, up, vp) -> np.ndarray:
-    """Camera-frame points (..., 3) [m] of depths z on the rays (u', v', 1)."""
-    z = np.asarray(z, dtype=np.float64)
-    return np.stack([np.asarray(up) * z, np.asarray(vp) * z, z], axis=-1)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -632,9 +387,10 @@ def lateral_percentile(sigmas_m, dof, q: float = LATERAL_PERCENTILE) -> dict:
     compared on the log-variance scale, where the sampling error no longer depends on the value:
     y_i = log s_i^2 - (digamma(k_i / 2) - log(k_i / 2)) is unbiased for log sigma_i^2 with variance
     v_i = trigamma(k_i / 2). The spread of the true values beyond the sampling errors, tau^2, is the
-    DerSimonian-Laird moment estimate; each y_i is shrunk towards the precision-weighted mean by
-    tau^2 / (tau^2 + v_i) (empirical Bayes) and the percentile of the shrunk values estimates the
-    percentile of the true values. With tau = 0 (all captures alike) it is their weighted geometric mean.
+    DerSimonian-Laird moment estimate (:func:`noise_model.formulas.dersimonian_laird_tau2`); each y_i is
+    shrunk towards the precision-weighted mean by tau^2 / (tau^2 + v_i) (empirical Bayes) and the
+    percentile of the shrunk values estimates the percentile of the true values. With tau = 0 (all
+    captures alike) it is their weighted geometric mean.
 
     Parameters
     ----------
@@ -671,9 +427,9 @@ def lateral_percentile(sigmas_m, dof, q: float = LATERAL_PERCENTILE) -> dict:
     mean_w = float(np.sum(w * y) / np.sum(w))
     tau2 = 0.0
     if s.size > 1:
-        Q = float(np.sum(w * (y - mean_w) ** 2))
-        denom = float(np.sum(w) - np.sum(w * w) / np.sum(w))
-        tau2 = max(0.0, (Q - (s.size - 1)) / denom) if denom > 0 else 0.0
+        s1, s2 = float(np.sum(w)), float(np.sum(w * w))
+        excess = float(np.sum(w * (y - mean_w) ** 2)) - (s.size - 1)         # Cochran's Q - (K - 1)
+        tau2 = float(dersimonian_laird_tau2(excess, s1, s2)) if s1 - s2 / s1 > 0 else 0.0
     w2 = 1.0 / (v + tau2)
     mean = float(np.sum(w2 * y) / np.sum(w2))
     shrunk = mean + tau2 / (tau2 + v) * (y - mean)
@@ -740,10 +496,19 @@ def eq1_rms_error(distance_m, fx_px: float, width_px: int, baseline_m: float = 0
 
 
 def axial_model(z, theta, c0, c1, c2, c_theta):
-    """sigma_z = c0 + c1 z + c2 z^2 + c_theta z^(3/2) theta / (pi/2 - theta)^2 [m] (no angle cap)."""
+    """sigma_z = c0 + c1 z + c2 z^2 + c_theta z^(3/2) theta / (pi/2 - theta)^2 [m] (no angle cap), for any
+    coefficients: :func:`noise_model.formulas.sigma_z_from_gain` with :func:`noise_model.formulas.angle_gain`.
+
+    Parameters
+    ----------
+    z, theta : array_like
+        Depth [m] and incidence angle [rad] in [0, pi/2) (broadcast together).
+    c0, c1, c2, c_theta : float
+        Coefficients [m], [-], [1/m], [m^-1/2].
+    """
     z = np.asarray(z, dtype=np.float64)
     t = np.asarray(theta, dtype=np.float64)
-    return c0 + c1 * z + c2 * z * z + c_theta * z * np.sqrt(z) * t / (0.5 * np.pi - t) ** 2
+    return sigma_z_from_gain(z, angle_gain(t, c_theta), c0, c1, c2)
 
 
 @dataclass(frozen=True)

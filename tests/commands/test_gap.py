@@ -1,4 +1,4 @@
-"""The sim-to-real gap diagnosis (issue 7): statistics, noise floor, selection, report, selftest, real frames."""
+"""The sim-to-real gap diagnosis: statistics, noise floor, selection, report, selftest, real frames."""
 
 from __future__ import annotations
 

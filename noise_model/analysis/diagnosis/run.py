@@ -1,0 +1,527 @@
+"""The diagnosis on real captures: held-out split, simulation and fits with common random numbers, the report.
+
+:func:`diagnose` runs the whole sim-to-real gap diagnosis on captures held in memory
+(:class:`noise_model.analysis.capture_data.CaptureData`, e.g. read from a capture set, format
+``d435-captures/1``, see docs/capture-set-format.md):
+
+1. **Simulate** every real capture with the reference simulation of Ahn et al.'s model
+   (:func:`noise_model.analysis.capture_data.simulate_capture`, as many frames as the real capture;
+   capture ``i`` always draws from ``default_rng([seed, crc32(id)])``, in every model: common random
+   numbers, :func:`capture_rng`).
+2. **Compare** real and simulated per statistic and stratum (:mod:`.sums`, :mod:`.floor`), each
+   difference normalised by the real-vs-real noise floor.
+3. **Where**: strata and statistics ranked by gap.
+4. **Which**: forward selection over the effects library (:mod:`.selection`): each candidate is fitted
+   on the *fit* captures (:func:`noise_model.analysis.effect_fits.fit_effect`, :class:`EffectFitter`), the one
+   that shrinks the fit gap most is added if it shrinks the *held-out* gap significantly; repeated while
+   the remaining gap is significant; then each selected effect is removed again (ablation).
+5. **How far**: the shrink on held-out captures only (whole captures, :func:`split_captures`: given
+   ids, or ``auto``: the middle third of the distances of each target kind, all angles), what is left
+   and where.
+
+The result is the JSON-ready report of format ``d435-gap/1`` (:data:`FORMAT`). Also here: the
+self-test's pseudo-real captures (:func:`selftest_geometries`, :func:`selftest_cases`,
+:func:`selftest_case`: the reference simulation plus known effects at random parameters, which the
+diagnosis must find blind) and :func:`plane_geometry`, which turns a plane fitted to a region of a real
+frame into a capture's geometry. Files, progress bars and recordings are the command's
+(``elevmap gap``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import zlib
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ...d435 import D435, SensorModel
+from ...sim.effects import EFFECTS, ORDER, canonical_order, draw_params, make_effect
+from ..capture_data import CaptureData, CaptureGeometry, check_captures, simulate_capture
+from ..effect_fits import NEEDS, fit_effect, usable_captures, within_tolerance
+from ..planes import PlaneFit
+from .floor import MIN_FLOOR, Z_FLOOR
+from .selection import Diagnosis, SelectionConfig, model_key
+from .strata import Binning, GapCapture, make_gap_capture
+from .sums import STAT_UNITS
+
+__all__ = ["FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "parse_effect_names", "auto_heldout", "split_captures",
+           "capture_rng", "CaptureSimulator", "EffectFitter", "gap_capture_of", "diagnose", "plane_geometry",
+           "selftest_geometries", "selftest_cases", "selftest_case"]
+
+#: The report's format.
+FORMAT = "d435-gap/1"
+#: Most ``where`` / ``where_unexplained`` entries written to the report (ranked; the rest are counted).
+MAX_WHERE = 300
+#: The two effects of the selftest's two-effect case.
+SELFTEST_PAIR = ("invalid_band", "correlated_noise")
+
+
+# ---------------------------------------------------------------------------------------------
+# arguments and the held-out split
+# ---------------------------------------------------------------------------------------------
+def _names(spec, option: str, allowed, what: str) -> list[str]:
+    """Distinct names of ``allowed`` from a comma-separated string or a sequence of strings.
+
+    ``option`` and ``what`` name the argument and one name in messages (``--heldout``, "capture").
+
+    Raises
+    ------
+    ValueError
+        An empty entry, an unknown name, a name given twice, or neither a string nor a sequence.
+    """
+    if isinstance(spec, str):
+        names = [s.strip() for s in spec.split(",")]
+    else:
+        try:
+            names = [str(s).strip() for s in spec]
+        except TypeError:
+            raise ValueError(f"{option} must be comma-separated {what}s or a list of them, got {spec!r}") from None
+    if not names or any(not n for n in names):
+        raise ValueError(f"{option} {spec!r}: give comma-separated {what}s of {', '.join(allowed)}")
+    for n in names:
+        if n not in allowed:
+            raise ValueError(f"unknown {what} {n!r}; {what}s: {', '.join(allowed)}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"{option} {spec!r} names a {what} twice")
+    return names
+
+
+def parse_effect_names(effects) -> list[str]:
+    """Candidate effect names: None / ``"all"`` = every effect of the library (canonical order), else a
+    comma-separated string or a sequence of names of :data:`noise_model.sim.effects.EFFECTS`."""
+    if effects is None or (isinstance(effects, str) and effects.strip().lower() in ("", "all")):
+        return list(ORDER) + [n for n in EFFECTS if n not in ORDER]
+    return _names(effects, "--effects", list(EFFECTS), "effect")
+
+
+def _incidence_deg(target: dict) -> float:
+    """Incidence angle [deg] of a capture-set target on the optical axis: acos |cos(yaw) cos(pitch)|."""
+    yaw, pitch = math.radians(float(target.get("yaw_deg") or 0.0)), math.radians(float(target.get("pitch_deg") or 0.0))
+    return math.degrees(math.acos(min(1.0, abs(math.cos(yaw) * math.cos(pitch)))))
+
+
+def _kind_of(g: CaptureGeometry) -> str:
+    """The target kind of the held-out blocks: ``wall``, ``board`` or ``board+background``."""
+    if g.kind == "wall":
+        return "wall"
+    return "board+background" if g.background_m is not None else "board"
+
+
+def auto_heldout(geometries: Sequence[CaptureGeometry], distances: dict | None = None) -> tuple[list[str], str]:
+    """The ``auto`` held-out block: per target kind, the captures at the middle third of that kind's
+    distinct distances (all angles); with a single distance, the middle third of its angles.
+
+    Returns
+    -------
+    ids : list of str
+    rule : str
+        The block in words (for the report).
+    """
+    out, parts = [], []
+    kinds: dict = {}
+    for g in geometries:
+        kinds.setdefault(_kind_of(g), []).append(g)
+    for kind, gs in kinds.items():
+        if len(gs) < 2:
+            continue
+        dist = {g.id: (distances or {}).get(g.id, g.distance_m) for g in gs}
+        ds = sorted({round(dist[g.id], 6) for g in gs})
+        if len(ds) >= 2:
+            k = max(1, int(round(len(ds) / 3)))
+            block = ds[(len(ds) - k) // 2:(len(ds) - k) // 2 + k]
+            ids = [g.id for g in gs if round(dist[g.id], 6) in block]
+            parts.append(f"{kind}: distances {block[0]:g}-{block[-1]:g} m (all angles)")
+        else:
+            angs = sorted({round(_incidence_deg(g.target), 6) for g in gs})
+            if len(angs) < 2:
+                continue
+            k = max(1, int(round(len(angs) / 3)))
+            block = angs[(len(angs) - k) // 2:(len(angs) - k) // 2 + k]
+            ids = [g.id for g in gs if round(_incidence_deg(g.target), 6) in block]
+            parts.append(f"{kind}: angles {block[0]:g}-{block[-1]:g} deg at {ds[0]:g} m")
+        if len(ids) < len(gs):
+            out += ids
+    return out, "; ".join(parts) if parts else "none (too few captures to hold any out)"
+
+
+def split_captures(geometries: Sequence[CaptureGeometry], heldout="auto", distances: dict | None = None):
+    """Fit and held-out captures (whole captures).
+
+    Parameters
+    ----------
+    geometries : sequence of CaptureGeometry
+    heldout : ``"auto"`` (or None: :func:`auto_heldout`), ``"none"``, a comma-separated string of ids,
+        or a sequence of ids
+    distances : dict, optional
+        Capture id -> the distance [m] the ``auto`` block goes by (default: the target's).
+
+    Returns
+    -------
+    fit_ids, heldout_ids : list of str
+    rule : str
+
+    Raises
+    ------
+    ValueError
+        Unknown id, or every capture held out.
+    """
+    ids = [g.id for g in geometries]
+    if heldout is None or (isinstance(heldout, str) and heldout.strip().lower() == "auto"):
+        held, rule = auto_heldout(geometries, distances)
+    elif isinstance(heldout, str) and heldout.strip().lower() in ("", "none"):
+        held, rule = [], "none"
+    else:
+        held = _names(heldout, "--heldout", ids, "capture")
+        rule = "given: " + ", ".join(held)
+    hs = set(held)
+    fit = [i for i in ids if i not in hs]
+    if not fit:
+        raise ValueError("every capture is held out: nothing is left to fit the effects on")
+    return fit, [i for i in ids if i in hs], rule
+
+
+# ---------------------------------------------------------------------------------------------
+# simulation and fits with common random numbers
+# ---------------------------------------------------------------------------------------------
+def capture_rng(seed: int, capture_id: str) -> np.random.Generator:
+    """The generator of a capture's simulation in every model (and in the fits' base simulations)."""
+    return np.random.default_rng([int(seed), zlib.crc32(capture_id.encode("utf-8"))])
+
+
+class CaptureSimulator:
+    """``simulate(ids, effects, n_frames) -> {id: depth_m}``: the reference simulation plus effects.
+
+    Effects are (name, params) pairs, made with :func:`noise_model.sim.effects.make_effect` and applied in
+    :func:`noise_model.sim.effects.canonical_order`; capture ``id`` draws from :func:`capture_rng`, the
+    same generator in every model and in :func:`noise_model.analysis.effect_fits.fit_effect`'s base simulations.
+    """
+
+    def __init__(self, geometries: dict, model: SensorModel = D435, seed: int = 0):
+        self.geometries, self.model, self.seed = geometries, model, int(seed)
+
+    def __call__(self, ids, effects, n_frames: int) -> dict:
+        objs = canonical_order([make_effect(n, **p) for n, p in effects])
+        out = {}
+        for i in ids:
+            g = self.geometries[i]
+            units = simulate_capture(g, int(n_frames), capture_rng(self.seed, i), self.model, objs)
+            out[i] = CaptureData.from_units(g, units).depth_m
+        return out
+
+
+class EffectFitter:
+    """``fit(name, base_effects) -> params`` on the fit captures (base simulations cached per base model)."""
+
+    def __init__(self, fit_real: Sequence[CaptureData], model: SensorModel = D435, seed: int = 0,
+                 rois: dict | None = None):
+        self.real, self.model, self.seed = list(fit_real), model, int(seed)
+        ids = {c.id for c in self.real}
+        # the fits see only each capture's region of interest, as the statistics do
+        self.rois = None if not rois else {k: v for k, v in rois.items() if k in ids}
+        self._cache: dict = {}
+        self._base_key = None
+
+    def __call__(self, name: str, base_effects) -> dict:
+        key = model_key(base_effects)
+        if key != self._base_key:                 # a new base model: drop the old base simulations
+            self._cache, self._base_key = {}, key
+        base = [make_effect(n, **p) for n, p in base_effects]
+        try:
+            params = fit_effect(name, self.real, self.model, base, seed=self.seed, cache=self._cache,
+                                  rois=self.rois)
+        except (ArithmeticError, np.linalg.LinAlgError, IndexError) as exc:   # a fit that cannot cope
+            raise ValueError(f"fit of {name} failed on these captures ({type(exc).__name__}: {exc})") from exc
+        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in params.items()}
+
+
+def gap_capture_of(data: CaptureData | CaptureGeometry, model: SensorModel = D435, roi=None,
+                   distance_m: float | None = None, kind: str | None = None) -> GapCapture:
+    """The :class:`noise_model.analysis.diagnosis.GapCapture` of a capture's geometry (nominal render, regions)."""
+    g = getattr(data, "geometry", data)
+    z, th = g.render()
+    return make_gap_capture(g.id, z, th, g.regions(model=model), g.K, g.baseline_m,
+                            g.distance_m if distance_m is None else distance_m, _incidence_deg(g.target),
+                            kind or _kind_of(g), model, roi)
+
+
+# ---------------------------------------------------------------------------------------------
+# the diagnosis
+# ---------------------------------------------------------------------------------------------
+def _json_ready(obj):
+    """Strict-JSON copy of a report: NaN/inf -> None, NumPy scalars and arrays -> Python numbers and
+    lists, tuples -> lists, paths -> str, dict keys -> str (as ``elevmap.fileio.json_ready``)."""
+    if isinstance(obj, dict):
+        return {str(k): _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_ready(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def _where(entries: list, limit: int = MAX_WHERE, pad: int = 20) -> list:
+    """The ``where`` entries worth reporting: those with a gap (at least ``pad``, ranked), at most ``limit``."""
+    pos = [e for e in entries if e["gap"] > 0]
+    if len(pos) < pad:
+        pos = entries[:max(pad, len(pos))]
+    return pos[:limit]
+
+
+def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed: int = 0, model: SensorModel = D435,
+             progress: Callable[[str], None] | None = None, rois: dict | None = None, distances: dict | None = None,
+             kinds: dict | None = None, real_label: str = "", config: SelectionConfig | None = None,
+             n_splits: int = 64, n_boot: int = 64, binning: Binning | None = None):
+    """Run the diagnosis on real captures held in memory.
+
+    Parameters
+    ----------
+    real : sequence of CaptureData
+        The real captures (frames as metric depth, NaN = no data).
+    heldout : "auto", "none", ids
+        Held-out captures (see :func:`split_captures`).
+    effects : None, str or sequence of str
+        Candidate effects (:func:`parse_effect_names`); those whose fits need capture kinds the fit
+        captures lack (:data:`noise_model.analysis.effect_fits.NEEDS`) are skipped and listed.
+    seed : int
+        Seed of the simulations (common random numbers), the fits' base simulations, the half-splits
+        and the bootstrap.
+    model : SensorModel
+        The reference model.
+    progress : callable, optional
+        ``progress(message)`` after every simulated model (a progress bar's step).
+    rois, distances, kinds : dict, optional
+        Per capture id: a boolean region of interest (H, W) (only those pixels count), the distance
+        [m] for its distance bin (default: the target's), its kind label.
+    real_label : str
+        What the report's ``real`` says.
+    config : SelectionConfig, optional
+    n_splits, n_boot : int
+        Half-splits of the noise floor and bootstrap replicates over frames.
+    binning : Binning, optional
+        Distance and angle bins of the strata.
+
+    Returns
+    -------
+    report : dict
+        The JSON-ready report, format ``d435-gap/1``. The keys of the format (``format``, ``real``,
+        ``split``, ``baseline``, ``where``, ``effects``, ``final``) plus: ``baseline.gap_all``,
+        ``p_value``, ``significant_fit``, ``significant_heldout``, ``null_gap_p95`` (the 95th percentile
+        of real-vs-real aggregate gaps); each ``where`` entry's ``z`` (difference / floor), ``floor``
+        (sigma_0, units of the statistic) and ``weight`` (its share of the aggregate); each effect's
+        ``shrink_test`` (paired bootstrap) and ``ablation`` (``gap_heldout_without``, ``confirmed``);
+        ``final.gap_fit``, ``gap_all``, ``significant``; ``rounds`` (every candidate's fitted parameters
+        and fit gap per round), ``stop_reason``, ``candidates``, ``skipped`` (effects whose fits need
+        captures the set lacks), ``heldout_rule``, ``validation``, ``floor`` (source, splits,
+        replicates, thresholds), ``unavailable`` (statistics that could not be computed, and why),
+        ``statistics`` (units), ``by`` / ``by_final`` (mean gap and share per statistic, region, image
+        cell, distance and angle bin, before / after), ``captures``, ``frames``, ``sim_frames``,
+        ``seed``, ``model``, ``binning``, ``seconds``; ``frames_cut`` when captures had more frames
+        than the fewest.
+    result : DiagnosisResult
+    """
+    t0 = time.perf_counter()
+    real = check_captures(real)
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    names = parse_effect_names(effects)
+    geoms = {c.id: c.geometry for c in real}
+    fit_ids, held_ids, rule = split_captures([c.geometry for c in real], heldout, distances)
+    by_id = {c.id: c for c in real}
+    fit_real = [by_id[i] for i in fit_ids]
+    candidates, skipped = [], {}
+    for n in names:
+        if usable_captures(n, fit_real):
+            candidates.append(n)
+        else:
+            skipped[n] = f"its fit needs {' or '.join(NEEDS[n])} captures among the fit captures"
+    caps = [gap_capture_of(c, model, (rois or {}).get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id))
+            for c in real]
+    dg = Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
+                   CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed, rois),
+                   binning=binning or Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
+                   config=config or SelectionConfig(), progress=progress)
+    res = dg.run(candidates)
+    r = res.report
+    report = {"format": FORMAT, "real": real_label, "split": {"fit": fit_ids, "heldout": held_ids},
+              "baseline": r["baseline"], "where": _where(r["where"]), "effects": r["effects"],
+              "final": {**r["final"], "where_unexplained": _where(r["final"]["where_unexplained"], pad=0)}}
+    report.update({
+        "where_count": sum(1 for e in r["where"] if e["gap"] > 0),
+        "heldout_rule": rule, "validation": r["validation"], "candidates": candidates, "skipped": skipped,
+        "rounds": r["rounds"], "stop_reason": r["stop_reason"],
+        "floor": {"source": r["floor_source"], "n_splits": int(n_splits), "n_boot": int(n_boot),
+                  "z_floor": Z_FLOOR, "min_floor": dict(MIN_FLOOR),
+                  "alpha": (config or SelectionConfig()).alpha},
+        "unavailable": r["unavailable"], "statistics": dict(STAT_UNITS), "by": r["by"], "by_final": r["by_final"],
+        "frames": r["frames"], "sim_frames": r["sim_frames"], "seed": int(seed), "model": model.to_dict(),
+        "binning": {"distance_width_m": dg.binning.distance_width_m, "angle_width_deg": dg.binning.angle_width_deg},
+        "captures": [{"id": c.id, "kind": c.kind, "distance_m": c.distance_m, "angle_deg": c.angle_deg,
+                      "frames": int(by_id[c.id].n_frames), "heldout": c.id in held_ids} for c in caps],
+        "simulated_captures": dg.n_simulated, "seconds": time.perf_counter() - t0,
+    })
+    if "frames_cut" in r:
+        report["frames_cut"] = r["frames_cut"]
+    return _json_ready(report), res
+
+
+# ---------------------------------------------------------------------------------------------
+# selftest
+# ---------------------------------------------------------------------------------------------
+def _selftest_camera(width: int, height: int, model: SensorModel) -> dict:
+    """The capture-set ``camera`` of the selftest: ``model``'s intrinsics at width x height, 1 mm units."""
+    K = model.intrinsics(width, height)
+    return {"width": int(width), "height": int(height), "fx": float(K[0, 0]), "fy": float(K[1, 1]),
+            "ppx": float(K[0, 2]), "ppy": float(K[1, 2]), "depth_scale": 0.001, "baseline_m": model.baseline_m}
+
+
+def selftest_geometries(kind: str = "wall", width: int = 424, height: int = 240,
+                        model: SensorModel = D435) -> list[CaptureGeometry]:
+    """The selftest's captures: 18 walls (0.5 to 2.0 m every 0.3 m x yaw 0, 30, 55 deg), or 12 boards
+    0.60 x 0.90 m before a wall at 3 m (0.6 to 2.1 m every 0.3 m x yaw 0, 30 deg), the sets
+    :data:`noise_model.analysis.effect_fits.FIT_TOLERANCE` is stated for."""
+    cam = _selftest_camera(width, height, model)
+    if kind == "wall":
+        return [CaptureGeometry.from_capture_set_entry(cam, {"id": f"wall_z{d:.2f}_y{y:02d}", "target": {
+            "kind": "wall", "distance_m": d, "yaw_deg": float(y), "pitch_deg": 0.0}})
+            for d in (0.5, 0.8, 1.1, 1.4, 1.7, 2.0) for y in (0, 30, 55)]
+    if kind == "board":
+        return [CaptureGeometry.from_capture_set_entry(cam, {"id": f"board_z{d:.2f}_y{y:02d}", "target": {
+            "kind": "board", "distance_m": d, "yaw_deg": float(y), "pitch_deg": 0.0, "width_m": 0.6,
+            "height_m": 0.9}, "background_m": 3.0}) for d in (0.6, 0.9, 1.2, 1.5, 1.8, 2.1) for y in (0, 30)]
+    raise ValueError(f"kind must be 'wall' or 'board', got {kind!r}")
+
+
+def selftest_cases(effects, seed: int) -> list[dict]:
+    """The selftest's cases: each effect alone at parameters drawn from its range (seeded), no effect,
+    and the two effects of :data:`SELFTEST_PAIR` together.
+
+    Returns
+    -------
+    list of dict
+        ``case`` (its name) and ``effects`` (list of (name, params)).
+    """
+    names = parse_effect_names(effects)
+    cases = []
+    for k, n in enumerate(names):
+        p = draw_params(n, np.random.default_rng([int(seed), 1, k]))
+        cases.append({"case": n, "effects": [(n, p)]})
+    cases.append({"case": "none", "effects": []})
+    pair = [(n, draw_params(n, np.random.default_rng([int(seed), 2, j]))) for j, n in enumerate(SELFTEST_PAIR)]
+    cases.append({"case": "+".join(SELFTEST_PAIR), "effects": pair})
+    return cases
+
+
+def selftest_case(case: dict, seed: int, n_frames: int, width: int, height: int, model: SensorModel,
+                  index: int, numba_threads: int | None = None) -> dict:
+    """One selftest case: build the pseudo-real captures, diagnose them blind, check the outcome.
+
+    The pseudo-real data are the reference simulation of :func:`selftest_geometries` (walls, or boards
+    before a background when an effect's fit needs them) plus the case's effects, drawn from generators
+    the diagnosis never uses. Checks: one effect must be selected first, its parameters recovered within
+    :func:`noise_model.analysis.effect_fits.within_tolerance` and the held-out gap shrink by >= 60 %; no effect:
+    no significant baseline gap and nothing selected; two effects: both selected, shrink >= 60 %.
+
+    Parameters
+    ----------
+    case : dict
+        One of :func:`selftest_cases`.
+    seed : int
+    n_frames, width, height : int
+        Frames per capture and image size [px].
+    model : SensorModel
+    index : int
+        The case's index (seeds its pseudo-real data).
+    numba_threads : int, optional
+        Set numba's thread count first (a worker process of a parallel selftest).
+
+    Returns
+    -------
+    dict
+        JSON-ready: ``case``, ``captures``, ``true``, ``selected``, ``fitted``, ``param_errors``,
+        ``baseline_gap_heldout``, ``significant``, ``shrink_heldout``, ``stop_reason``, ``round1``,
+        ``seconds``, ``checks``, ``passed``.
+    """
+    if numba_threads is not None:
+        import numba
+
+        numba.set_num_threads(int(numba_threads))
+    t0 = time.perf_counter()
+    needs_board = any("board+background" in NEEDS[n] for n, _ in case["effects"])
+    geoms = selftest_geometries("board" if needs_board else "wall", width, height, model)
+    objs = canonical_order([make_effect(n, **p) for n, p in case["effects"]])
+    real = []
+    for g in geoms:
+        rng = np.random.default_rng([int(seed) + 1_000_003, index, zlib.crc32(g.id.encode("utf-8"))])
+        real.append(CaptureData.from_units(g, simulate_capture(g, int(n_frames), rng, model, objs)))
+    report, _ = diagnose(real, heldout="auto", effects=None, seed=int(seed), model=model,
+                         real_label=f"selftest:{case['case']}")
+    selected = [e["name"] for e in report["effects"]]
+    row = {"case": case["case"], "captures": f"{len(geoms)} {'boards' if needs_board else 'walls'} x {n_frames} "
+                                              f"frames {width}x{height}",
+           "true": {n: p for n, p in case["effects"]}, "selected": selected,
+           "fitted": {e["name"]: e["params"] for e in report["effects"]},
+           "baseline_gap_heldout": report["baseline"]["gap_heldout"], "significant": report["baseline"]["significant"],
+           "shrink_heldout": report["final"]["shrink_heldout"], "stop_reason": report["stop_reason"],
+           "round1": [c["name"] for c in report["rounds"][0]["candidates"][:3]] if report["rounds"] else [],
+           "seconds": time.perf_counter() - t0}
+    checks = {}
+    if not case["effects"]:
+        checks["not_significant"] = not report["baseline"]["significant"]
+        checks["nothing_selected"] = not selected
+    elif len(case["effects"]) == 1:
+        name, true = case["effects"][0]
+        checks["ranked_first"] = bool(selected) and selected[0] == name
+        if checks["ranked_first"]:
+            ok, errs = within_tolerance(name, true, row["fitted"][name])
+            row["param_errors"] = {k: {"error": e, "allowed": a} for k, (e, a) in errs.items()}
+        else:
+            ok = False
+        checks["params_within_tolerance"] = bool(ok)
+        checks["shrink_heldout_ge_0.6"] = row["shrink_heldout"] >= 0.6
+    else:
+        checks["all_found"] = all(n in selected for n, _ in case["effects"])
+        checks["shrink_heldout_ge_0.6"] = row["shrink_heldout"] >= 0.6
+    row["checks"] = checks
+    row["passed"] = all(checks.values())
+    return _json_ready(row)
+
+
+# ---------------------------------------------------------------------------------------------
+# a plane fitted to a region of a real frame as a capture
+# ---------------------------------------------------------------------------------------------
+def plane_geometry(capture_id: str, plane: PlaneFit, K, width: int, height: int, depth_scale: float,
+                   baseline_m: float = D435.baseline_m) -> CaptureGeometry:
+    """A capture-set wall whose plane is a fitted plane n . X = c (c >= 0).
+
+    The wall's centre is where the plane crosses the optical axis, distance_m = c / n_z; yaw =
+    atan2(n_x, n_z), pitch = -asin(n_y), so that its normal R_y(yaw) R_x(pitch) e_z is n.
+
+    Raises
+    ------
+    ValueError
+        A plane that does not cross the optical axis in front of the camera (n_z <= 0, e.g. a floor
+        seen by a camera looking slightly up): it is not a capture-set target.
+    """
+    n = np.asarray(plane.normal, dtype=np.float64)
+    if n[2] <= 1e-3 or plane.offset_m / n[2] > 100.0:
+        raise ValueError(f"{capture_id}: the fitted plane (normal {np.round(n, 4).tolist()}, incidence "
+                         f"{plane.incidence_deg:.1f} deg) does not cross the optical axis within 100 m in front of "
+                         "the camera, so it is not a capture-set target")
+    target = {"kind": "wall", "distance_m": float(plane.offset_m / n[2]),
+              "yaw_deg": math.degrees(math.atan2(n[0], n[2])), "pitch_deg": -math.degrees(math.asin(float(n[1])))}
+    camera = {"width": int(width), "height": int(height), "fx": float(K[0, 0]), "fy": float(K[1, 1]),
+              "ppx": float(K[0, 2]), "ppy": float(K[1, 2]), "depth_scale": float(depth_scale),
+              "baseline_m": float(baseline_m)}
+    return CaptureGeometry.from_capture_set_entry(camera, {"id": capture_id, "target": target})

@@ -1,0 +1,311 @@
+"""Effect selection: the baseline gap, forward selection of effects, ablation (:class:`Diagnosis`).
+
+:class:`Diagnosis` holds the real captures (fit and held-out split, whole captures) and two callables,
+``simulate(ids, effects, n_frames)`` and ``fit(name, base_effects)``. Forward selection: every candidate
+effect is fitted on the fit captures and simulated (common random numbers: each capture's noise seed
+is the same in every model), the one that lowers the fit gap most is added if it shrinks the held-out
+gap significantly (paired bootstrap over frames, :func:`.floor.shrink_test`: at least 1 - alpha of the
+replicates shrink, and by at least ``min_shrink`` of the baseline held-out gap); repeat while the
+remaining gap is significant. Ablation then removes each selected effect again and reports whether the
+held-out gap grows significantly (confirmed) or not.
+
+An effect is a (name, params) pair; a model is the reference simulation plus a list of effects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .floor import Floor, GapResult, aggregate_by, compare, make_floor, shrink_test
+from .strata import Binning, GapCapture
+from .sums import capture_sums, check_depth_stack, frame_sampling, pool_sums
+
+__all__ = ["SelectionConfig", "DiagnosisResult", "Diagnosis", "model_key"]
+
+@dataclass(frozen=True)
+class SelectionConfig:
+    """Settings of the forward selection.
+
+    Attributes
+    ----------
+    alpha : float
+        Significance level: the baseline test, and the paired bootstrap of a shrink (at least
+        1 - alpha of the replicates must shrink).
+    min_shrink : float
+        An effect must also shrink the held-out gap by at least this fraction of the baseline
+        held-out gap.
+    max_effects : int
+        At most this many effects are selected.
+    prune : bool
+        From the second round on, only candidates that shrank the fit gap in the previous round are
+        tried again (saves time; an effect that did not help before rarely helps after another).
+    """
+
+    alpha: float = 0.05
+    min_shrink: float = 0.05
+    max_effects: int = 4
+    prune: bool = True
+
+
+def model_key(effects) -> tuple:
+    """A hashable key of a model (a list of (name, params) effects): equal for equal effects and
+    parameters, whatever the order of the parameters (the cache key of simulations and base fits)."""
+    return tuple((name, tuple(sorted((k, _hashable(v)) for k, v in params.items()))) for name, params in effects)
+
+
+def _hashable(v):
+    """A parameter value as a hashable, comparable key (lists -> tuples, NumPy scalars -> Python)."""
+    if isinstance(v, (list, tuple)):
+        return tuple(_hashable(x) for x in v)
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
+
+
+@dataclass
+class DiagnosisResult:
+    """What :meth:`Diagnosis.run` found.
+
+    Attributes
+    ----------
+    report : dict
+        ``baseline``, ``where``, ``rounds``, ``effects``, ``final``, ``unavailable``, ``floor_source``
+        (JSON-ready; the orchestrator adds ``format``, ``real``, ``split``).
+    baseline_all, final_all : GapResult
+        Reference model and final model against all captures.
+    baseline_heldout, final_heldout : GapResult
+    selected : list of (str, dict)
+        The effects selected, in order, with their fitted parameters.
+    captures : dict
+        id -> GapCapture (fit captures first, then held-out).
+    """
+
+    report: dict
+    baseline_all: GapResult
+    final_all: GapResult
+    baseline_heldout: GapResult
+    final_heldout: GapResult
+    selected: list
+    captures: dict = field(default_factory=dict)
+
+
+class Diagnosis:
+    """Real captures against simulated models: baseline gap, forward selection of effects, ablation.
+
+    Parameters
+    ----------
+    captures : sequence of GapCapture
+    real_depth : mapping id -> ndarray (F, H, W) float [m]
+        The real frames (NaN = no data). Captures with more frames than the fewest are cut to it.
+    fit_ids, heldout_ids : sequence of str
+        Whole captures used to fit effects and to validate them (disjoint). With no held-out capture
+        the fit captures validate (the report says so).
+    simulate : callable
+        ``simulate(ids, effects, n_frames) -> {id: ndarray (n_frames, H, W) float [m]}``: the reference
+        simulation plus ``effects`` (list of (name, params)), each capture seeded the same way in every
+        model (common random numbers).
+    fit : callable or None
+        ``fit(name, base_effects) -> params``: an effect's parameters fitted on the fit captures on top
+        of ``base_effects``. None: baseline only.
+    binning : Binning
+    n_splits, n_boot : int
+        Real-vs-real half-splits (noise floor) and bootstrap replicates over frames.
+    seed : int
+        Seed of the splits and replicates.
+    config : SelectionConfig
+    progress : callable, optional
+        ``progress(message)`` after every simulated model.
+    """
+
+    def __init__(self, captures: Sequence[GapCapture], real_depth, fit_ids, heldout_ids, simulate: Callable,
+                 fit: Callable | None = None, *, binning: Binning = Binning(), n_splits: int = 64, n_boot: int = 64,
+                 seed: int = 0, config: SelectionConfig = SelectionConfig(), progress: Callable | None = None,
+                 n_floor_frames: int = 8):
+        self.captures = {c.id: c for c in captures}
+        if len(self.captures) != len(captures) or not captures:
+            raise ValueError("captures must be non-empty with unique ids")
+        fit_ids, heldout_ids = [str(i) for i in fit_ids], [str(i) for i in heldout_ids]
+        for i in fit_ids + heldout_ids:
+            if i not in self.captures:
+                raise ValueError(f"unknown capture id {i!r}")
+        if set(fit_ids) & set(heldout_ids):
+            raise ValueError(f"fit and held-out captures overlap: {sorted(set(fit_ids) & set(heldout_ids))}")
+        if not fit_ids:
+            raise ValueError("no fit captures")
+        self.fit_ids, self.heldout_ids = fit_ids, heldout_ids
+        self.validation_ids = heldout_ids if heldout_ids else fit_ids
+        self.all_ids = fit_ids + heldout_ids
+        frames = {}
+        for i in self.all_ids:
+            if i not in real_depth:
+                raise ValueError(f"no real depth for capture {i!r}")
+            frames[i] = check_depth_stack(self.captures[i], real_depth[i])
+        self.n_frames = min(d.shape[0] for d in frames.values())
+        self.cut_frames = sorted(i for i, d in frames.items() if d.shape[0] > self.n_frames)
+        self.simulate, self.fit = simulate, fit
+        self.binning, self.config, self.progress = binning, config, progress
+        self.seed = int(seed)
+        F = self.n_frames
+        self.single_frame = F < 2
+        self.n_sim_frames = F if F >= 2 else int(n_floor_frames)
+        self.real_sampling = frame_sampling(F, seed, n_splits, n_boot)
+        self.sim_sampling = frame_sampling(self.n_sim_frames, seed + 1, n_splits if self.single_frame else 0, n_boot)
+        self.real_sums = {i: capture_sums(self.captures[i], d[:F], self.real_sampling) for i, d in frames.items()}
+        self._sums: dict = {}
+        self._floors: dict = {}
+        self.n_simulated = 0
+
+    # -- evaluation ---------------------------------------------------------------------------
+    def _ensure(self, effects, ids):
+        key = model_key(effects)
+        store = self._sums.setdefault(key, {})
+        missing = [i for i in ids if i not in store]
+        if missing:
+            depth = self.simulate(missing, list(effects), self.n_sim_frames)
+            for i in missing:
+                if i not in depth:
+                    raise ValueError(f"simulate returned no depth for capture {i!r}")
+                store[i] = capture_sums(self.captures[i], depth[i], self.sim_sampling)
+            self.n_simulated += len(missing)
+            if self.progress is not None:
+                names = "+".join(n for n, _ in effects) or "reference"
+                self.progress(f"{names} ({len(missing)} captures)")
+        return store
+
+    def floor(self, ids) -> Floor:
+        key = tuple(ids)
+        if key not in self._floors:
+            caps = [self.captures[i] for i in ids]
+            keys, real = pool_sums(caps, [self.real_sums[i] for i in ids], self.binning)
+            if self.single_frame:
+                store = self._ensure([], ids)
+                _, fl = pool_sums(caps, [store[i] for i in ids], self.binning)
+                self._floors[key] = make_floor(keys, real, self.real_sampling, self.n_sim_frames, fl,
+                                               self.sim_sampling)
+            else:
+                self._floors[key] = make_floor(keys, real, self.real_sampling, self.n_sim_frames)
+        return self._floors[key]
+
+    def evaluate(self, effects, ids) -> GapResult:
+        """The gap of the model reference + ``effects`` over the captures ``ids``."""
+        fl = self.floor(ids)
+        store = self._ensure(effects, ids)
+        caps = [self.captures[i] for i in ids]
+        _, sim = pool_sums(caps, [store[i] for i in ids], self.binning)
+        return compare(fl, self.real_sampling, sim, self.sim_sampling, self.config.alpha)
+
+    def forget(self, keep) -> None:
+        """Drop cached simulations of models not in ``keep`` (lists of effects)."""
+        keys = {model_key(e) for e in keep} | {model_key([])}
+        for k in list(self._sums):
+            if k not in keys:
+                del self._sums[k]
+
+    # -- the whole diagnosis ------------------------------------------------------------------
+    def run(self, candidates: Sequence[str] = ()) -> DiagnosisResult:
+        """Baseline, forward selection over ``candidates`` (effect names) and ablation."""
+        cfg = self.config
+        b_all = self.evaluate([], self.all_ids)
+        b_fit = self.evaluate([], self.fit_ids)
+        b_val = self.evaluate([], self.validation_ids)
+        baseline = {"gap_fit": b_fit.G, "gap_heldout": b_val.G, "gap_all": b_all.G,
+                    "significant": b_all.significant, "p_value": b_all.p_value,
+                    "significant_fit": b_fit.significant, "significant_heldout": b_val.significant,
+                    "null_gap_p95": float(np.percentile(b_all.floor.null_g, 95)) if b_all.floor.null_g.size else None}
+        selected: list = []
+        rounds: list = []
+        effects_out: list = []
+        cur_fit, cur_val = b_fit, b_val
+        remaining = list(dict.fromkeys(candidates))
+        stop_reason = "no candidate effects" if not remaining else None
+        if self.fit is None and remaining:
+            stop_reason = "no fit function: baseline only"
+            remaining = []
+        if remaining and not (b_all.significant or b_fit.significant or b_val.significant):
+            stop_reason = "no significant gap: the reference model is within the real-vs-real noise floor"
+            remaining = []
+        while remaining and len(selected) < cfg.max_effects:
+            tried = []
+            for name in remaining:
+                entry = {"name": name}
+                try:
+                    params = dict(self.fit(name, list(selected)))
+                    model = selected + [(name, params)]
+                    r = self.evaluate(model, self.fit_ids)
+                except ValueError as exc:          # no usable fit, or parameters the effect refuses
+                    entry.update(error=str(exc), gap_fit_after=None, shrink_fit=None)
+                    tried.append((entry, None, None))
+                    continue
+                entry.update(params=params, gap_fit_after=r.G,
+                             shrink_fit=1.0 - r.G / cur_fit.G if cur_fit.G > 0 else 0.0)
+                tried.append((entry, model, r))
+            ok = [t for t in tried if t[2] is not None]
+            ok.sort(key=lambda t: t[2].G)
+            rnd = {"round": len(rounds) + 1, "gap_fit_before": cur_fit.G, "gap_heldout_before": cur_val.G,
+                   "candidates": [t[0] for t in ok] + [t[0] for t in tried if t[2] is None]}
+            rounds.append(rnd)
+            if not ok or ok[0][2].G >= cur_fit.G:
+                stop_reason = "no candidate shrinks the fit gap"
+                break
+            entry, model, r_fit = ok[0]
+            r_val = self.evaluate(model, self.validation_ids)
+            test = shrink_test(cur_val, r_val, cfg.alpha)
+            big_enough = test["delta"] >= cfg.min_shrink * b_val.G
+            rnd["chosen"] = entry["name"]
+            rnd["heldout_test"] = {**test, "gap_heldout_after": r_val.G, "min_delta": cfg.min_shrink * b_val.G}
+            if not (test["significant"] and big_enough):
+                rnd["accepted"] = False
+                stop_reason = (f"best candidate {entry['name']} does not shrink the held-out gap significantly "
+                               f"(shrinks in {100 * test['fraction']:.0f} % of replicates, by {test['delta']:.3g})")
+                break
+            rnd["accepted"] = True
+            selected = model
+            effects_out.append({"name": entry["name"], "params": entry["params"], "gap_fit_after": r_fit.G,
+                                "gap_heldout_after": r_val.G,
+                                "shrink_heldout": 1.0 - r_val.G / b_val.G if b_val.G > 0 else 0.0,
+                                "shrink_test": test})
+            prev_fit = cur_fit.G
+            cur_fit, cur_val = r_fit, r_val
+            if cfg.prune:
+                remaining = [t[0]["name"] for t in ok[1:] if t[2].G < prev_fit]
+            else:
+                remaining = [t[0]["name"] for t in tried if t[0]["name"] != entry["name"]]
+            self.forget([selected])
+            if not (r_fit.significant or r_val.significant):
+                stop_reason = "remaining gap within the real-vs-real noise floor"
+                break
+            if not remaining:
+                stop_reason = "no candidate left that shrank the fit gap"
+        if stop_reason is None:
+            stop_reason = f"reached the maximum of {cfg.max_effects} effects"
+        # ablation: remove each selected effect again
+        for i, e in enumerate(effects_out):
+            without = selected[:i] + selected[i + 1:]
+            r = self.evaluate(without, self.validation_ids)
+            test = shrink_test(r, cur_val, cfg.alpha)
+            e["ablation"] = {"gap_heldout_without": r.G, "delta": test["delta"], "fraction": test["fraction"],
+                             "confirmed": test["significant"]}
+        f_all = self.evaluate(selected, self.all_ids)
+        final = {"gap_heldout": cur_val.G, "shrink_heldout": 1.0 - cur_val.G / b_val.G if b_val.G > 0 else 0.0,
+                 "unexplained_fraction": cur_val.G / b_val.G if b_val.G > 0 else 0.0,
+                 "gap_fit": cur_fit.G, "gap_all": f_all.G, "significant": f_all.significant,
+                 "p_value": f_all.p_value,
+                 "where_unexplained": f_all.entries(self.binning, only_positive=True)}
+        report = {"baseline": baseline, "where": b_all.entries(self.binning, only_positive=False),
+                  "effects": effects_out, "final": final, "rounds": rounds, "stop_reason": stop_reason,
+                  "floor_source": b_all.floor.source, "unavailable": dict(b_all.floor.unavailable),
+                  "frames": self.n_frames, "sim_frames": self.n_sim_frames,
+                  "validation": "held-out captures" if self.heldout_ids else
+                                "fit captures (no held-out capture: shrink is not independent)",
+                  "by": {by: aggregate_by(b_all, self.binning, by)
+                         for by in ("statistic", "region", "image_cell", "distance_m", "angle_deg")},
+                  "by_final": {by: aggregate_by(f_all, self.binning, by)
+                               for by in ("statistic", "region", "image_cell", "distance_m", "angle_deg")}}
+        if self.cut_frames:
+            report["frames_cut"] = {"to": self.n_frames, "captures": self.cut_frames}
+        return DiagnosisResult(report, b_all, f_all, b_val, cur_val, list(selected),
+                               {i: self.captures[i] for i in self.all_ids})
+
