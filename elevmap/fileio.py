@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["check_outputs", "atomic_output", "write_json_atomic", "json_ready"]
+__all__ = ["check_outputs", "atomic_output", "write_json_atomic", "json_ready", "new_file_mode"]
 
 
 def check_outputs(outputs: Mapping[str, object], overwrite: bool = False, inputs: Iterable = (), *,
@@ -91,7 +91,8 @@ def atomic_output(path, suffix: str | None = None):
     """Yield a temporary path next to ``path``; rename it onto ``path`` when the block succeeds.
 
     On any exception the temporary file is removed and ``path`` is left as it was (absent, or the
-    previous complete file), so a crash never leaves a partial output behind.
+    previous complete file), so a crash never leaves a partial output behind. The finished file gets
+    the permissions of the file it replaces, or the usual ones of a new file (:func:`new_file_mode`).
     """
     path = Path(path)
     if path.is_dir():
@@ -101,11 +102,25 @@ def atomic_output(path, suffix: str | None = None):
     os.close(fd)
     try:
         yield Path(tmp)
+        os.chmod(tmp, new_file_mode(path))
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def new_file_mode(path) -> int:
+    """Permissions for a finished output: those of the file it replaces, else 0o666 minus the umask.
+
+    (``tempfile.mkstemp`` creates the temporary file 0o600, which would otherwise stay.)
+    """
+    try:
+        return os.stat(path).st_mode & 0o7777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def write_json_atomic(path, obj) -> None:

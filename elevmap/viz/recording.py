@@ -15,6 +15,8 @@ import warnings
 import rerun as rr
 import rerun.blueprint as rrb
 
+from ..fileio import new_file_mode
+
 __all__ = ["AtomicRecording", "open_recording"]
 
 
@@ -110,7 +112,7 @@ class AtomicRecording:
             if self.tmp_path is not None:
                 with open(self.tmp_path, "rb") as fh:
                     os.fsync(fh.fileno())
-                os.chmod(self.tmp_path, _new_file_mode(self.path))
+                os.chmod(self.tmp_path, new_file_mode(self.path))
                 os.replace(self.tmp_path, self.path)
                 self.tmp_path = None
                 _fsync_dir(os.path.dirname(self.path))
@@ -141,19 +143,6 @@ class AtomicRecording:
             except FileNotFoundError:
                 pass
             self.tmp_path = None
-
-
-def _new_file_mode(path: str) -> int:
-    """Permissions for the finished file: those of the file it replaces, else 0o666 minus the umask.
-
-    (``tempfile.mkstemp`` creates the temporary file 0o600.)
-    """
-    try:
-        return os.stat(path).st_mode & 0o7777
-    except OSError:
-        umask = os.umask(0)
-        os.umask(umask)
-        return 0o666 & ~umask
 
 
 def _fsync_dir(directory: str) -> None:
