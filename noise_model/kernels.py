@@ -8,9 +8,13 @@ rotates it into the map frame and adds the first-order pose term of :func:`noise
 :func:`depth_to_map_points_reference` computes the same thing by composing those public NumPy
 functions, and the tests hold the two equal.
 
-numba flags: never ``fastmath=True`` (it folds ``isnan`` to False); the flag set below keeps NaN/inf
-semantics and leaves out ``arcp`` (it changes binning at cell borders). Work is split over image rows
-or blocks, each written by one thread only, so the result does not depend on the thread count.
+The model's formulas (sigma_z and its angle gain, E[sigma_z^2] over an uncertain angle, the
+Wilson-Hilferty quantile of the mixed-window test) are those of :mod:`noise_model.formulas`, compiled
+here and called by the NumPy functions the reference composes.
+
+numba flags: those of :mod:`noise_model.numba_config` (never ``fastmath=True``, which folds ``isnan`` to
+False; no ``arcp``, which changes binning at cell borders). Work is split over image rows or blocks,
+each written by one thread only, so the result does not depend on the thread count.
 """
 
 from __future__ import annotations
@@ -57,38 +61,30 @@ class MapPoints(NamedTuple):
     points_map : ndarray, shape (N, 3) [m]
         z: the map-frame height of the measured point. x, y: where the pixel's ray meets the local
         plane fitted around it (the denoised depth at which sigma_z is evaluated), where that plane
-        describes the pixel; else (depth edges, too few neighbours) of the measured point. The
+        describes the pixel; else (depth edges, too few neighbours) of the measured point. Why: the
         axial noise moves a point along its ray, so at grazing incidence it lands cells away from
         where its ray met the surface, and which cell a noisy point lands in is correlated with its
         height error (far-landing points are low): binning by the measured point biases the cell
         means and breaks their calibration. The plane's depth carries ~1/N of the pixel's own noise
         (N ~ 400 pixels in the window), so the cell is chosen (almost) independently of the height
-        error. Measured on the simulated stairs and boxes walks (``elevmap compare``): 2-sigma
-        coverage 0.90 -> 0.92 and 0.76 -> 0.81. In a window that holds more than one surface
-        (:func:`noise_model.mixed_windows`) the point is binned at the nearer of the plane's depth
-        and a denoised depth of its own surface, the median of the agreeing row medians of 5 rows
-        (:func:`noise_model.surface_depths`; a speckle: its replaced depth): a plane fitted across an
-        edge lies beyond the near surface (a box top seen at a grazing angle is a strip a few pixels
-        tall, its window mostly the floor behind it; a riser and its tread), and binning there carries
-        the near surface's height into the cells behind the edge, which its own occlusion leaves
-        sparsely seen; points binned a little too near land on cells the camera sees densely, where
-        they are outvoted. Measured: RMSE 61.7 -> 37.3 mm (stairs), 70.7 -> 59.7 mm (boxes) with the
-        pixel's own depth in place of the surface median; the surface median, whose noise is ~0.2 of
-        a pixel's, then took the paper mapper's RMSE from 36.7 to 28.9 mm (stairs), 50.7 to 32.5 mm
-        (slope), 59.3 to 55.4 mm (boxes).
-        Only there: on one surface binning nearer would take the pixels whose noise is negative
-        nearer, with their too-high heights, and leave the others (a flat floor read +6 mm beside
-        the walk, -3 to -6 mm beyond 1 m; 2-sigma coverage of the cells within 1 m of the walk 0.86 ->
-        0.97 once restricted to mixed windows).
+        error. In a window that holds more than one surface (:func:`noise_model.mixed_windows`) the
+        point is binned at the nearer of the plane's depth and a denoised depth of its own surface,
+        the median of the agreeing row medians of 5 rows (:func:`noise_model.surface_depths`; a
+        speckle: its replaced depth): a plane fitted across an edge lies beyond the near surface (a box
+        top seen at a grazing angle is a strip a few pixels tall, its window mostly the floor behind
+        it; a riser and its tread), and binning there carries the near surface's height into the cells
+        behind the edge, which its own occlusion leaves sparsely seen; points binned a little too near
+        land on cells the camera sees densely, where they are outvoted. The surface median's noise is
+        about a fifth of a pixel's, so it bins almost as independently of the height error as the
+        plane. Only there: on one surface binning nearer would take the pixels whose noise is negative
+        nearer, with their too-high heights, and leave the others, which biases a flat floor.
     height_var : ndarray, shape (N,) [m^2]
         Variance of the map-frame z of each point (Sigma_map[2, 2]). Its axial part is at least the
         squared distance of the pixel from its neighbours' median for a speckle, and from its surface
         median (:func:`noise_model.surface_depths`) in a window of two surfaces: there the window's
         angle and plane are fitted across both surfaces, and the pixels whose noise made the window
-        test mixed are among its pixels, so the model's sigma alone was half the truth beyond 2 m
-        (simulated stairs walk: depth 2-sigma coverage of those pixels 0.74-0.79 -> 0.95-0.98). As
-        weights, this took the paper mapper's RMSE from 28.8 to 26.7 mm (stairs), 32.3 to 29.3 mm
-        (slope), 55.2 to 54.6 mm (boxes) (``elevmap compare``, 60 frames, seed 0).
+        test mixed are among its pixels, so the model's sigma alone understates their noise far from
+        the camera.
     horizontal_cov : ndarray, shape (N, 3) [m^2]
         (Sigma_xx, Sigma_xy, Sigma_yy) of each point in the map frame.
     pixel : ndarray, shape (N,), int64
@@ -462,9 +458,10 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 gamma_px[by, u] = pg
                 mixed_px[by, u] = 1.0 if mixed else 0.0
 
-    # pass 2b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians;
-    # for the surface median, which bins the pixel and floors its variance) into rowmed (H, W), NaN for invalid ones; pixels outside mixed windows are neither computed nor
-    # written (pass 3 reads rowmed only where mixed_px says so), and rows without any are skipped.
+    # pass 2b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians; for
+    # the surface median, which bins the pixel and floors its variance) into rowmed (H, W), NaN for
+    # invalid ones; pixels outside mixed windows are neither computed nor written (pass 3 reads rowmed
+    # only where mixed_px says so), and rows without any are skipped.
     for v in prange(H):
         by = v // b
         any_mixed = False

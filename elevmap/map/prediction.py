@@ -3,7 +3,7 @@
 Both follow ANYbotics' elevation_mapping ("EM"; Fankhauser et al., "Robot-centric elevation mapping
 with uncertainty estimates", CLAWAR 2014, and "Probabilistic terrain mapping for mobile robots with
 uncertain localization", RA-L 2018). The equation numbers below are those quoted in EM's code
-comments (``src/RobotMotionMapUpdater.cpp``); see ``/work/shared/notes/anchors-mapping.md`` 2.3-2.4.
+comments (``src/RobotMotionMapUpdater.cpp``); docs/fusion.md sets them beside the other update rules.
 
 Prediction (:func:`predict`)
 ----------------------------
