@@ -1,6 +1,6 @@
 """Feed a legged controller from the map: height scans at 50 Hz while a recording replays.
 
-    .venv/bin/python examples/controller_feed.py [recordings/stairs_walk.rrd]
+    python examples/controller_feed.py [recordings/stairs_walk.rrd]
 
 The map is updated at the camera's rate; the controller asks for a height scan every 20 ms of
 recording time (50 Hz, as the policy of Miki et al. 2022): 52 samples on rings around each of four
@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from elevmap import Camera, ElevationMap, Mapper
-from elevmap.sources.rrd import RrdSource
-from noise_model.sim.scene import DEFAULT_T_BASE_CAM
+from elevmap.sources import RrdSource
+from noise_model.sim import DEFAULT_T_BASE_CAM
 
 FEET_BASE = np.array([[0.35, 0.2, -0.4], [0.35, -0.2, -0.4], [-0.35, 0.2, -0.4], [-0.35, -0.2, -0.4]])
 CONTROL_DT = 0.02

@@ -1,37 +1,37 @@
 """Map a real RealSense recording with a pose file, and write a rerun recording of it.
 
-    .venv/bin/python examples/map_realsense_recording.py RECORDING [POSES] [--out map.rrd]
+    python examples/map_realsense_recording.py RECORDING [POSES] [--t265] [--out map.rrd]
 
-RECORDING is a RealSense .bag/.db3 or a folder of 16-bit depth PNGs with its intrinsics JSON;
-POSES a TUM text file or an Open3D .log (interpolated to each frame's stamp: linear in position,
-slerp in rotation). Without arguments it maps the D435i + T265 floor sequence of
-../shared/realdata/polylidar_d435i_floor_filtered, whose poses are the T265's (y up), turned into a
-z-up map frame with the camera mounted as in polylidar.
+RECORDING is anything :func:`elevmap.open_source` opens: a RealSense .bag/.db3, a folder of 16-bit depth
+PNGs with its intrinsics JSON, a capture set, a rerun recording. POSES is a TUM text file or an Open3D
+.log, interpolated to each frame's stamp (linear in position, slerp in rotation). ``--t265``: the poses
+are those of a RealSense T265 tracking camera (y up, -z the initial heading), mounted with the D435 as
+in polylidar-realsense; they are turned into a z-up map frame (:data:`elevmap.sources.poses.T265_T_POSE_CAM`,
+:data:`elevmap.sources.poses.T_MAP_T265WORLD`). The map is fixed (6 m at 0.04 m, not following the
+camera), as for a hand-held sequence over one floor.
 """
 
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
-from elevmap.pipeline import MappingConfig, run_mapping
-from elevmap.sources.open import open_source
-from elevmap.sources.poses import T265_T_POSE_CAM, T_MAP_T265WORLD, read_pose_file, with_poses
-
-POLYLIDAR = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "polylidar_d435i_floor_filtered"
+from elevmap import MappingConfig, open_source, run_mapping
+from elevmap.sources import read_pose_file, with_poses
+from elevmap.sources.poses import T265_T_POSE_CAM, T_MAP_T265WORLD
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("recording", nargs="?")
+    parser.add_argument("recording")
     parser.add_argument("poses", nargs="?")
+    parser.add_argument("--t265", action="store_true", help="POSES are a T265 trajectory (see above)")
     parser.add_argument("--out", default=None, help="rerun recording to write")
     args = parser.parse_args()
-    if args.recording is None:
-        if not POLYLIDAR.is_dir():
-            raise SystemExit(f"give a recording: the default {POLYLIDAR} is not on this machine")
-        src = with_poses(open_source(str(POLYLIDAR)), read_pose_file(POLYLIDAR / "trajectory.log"),
-                         T_pose_cam=T265_T_POSE_CAM, T_map_pose=T_MAP_T265WORLD)
+    if args.t265:
+        if args.poses is None:
+            parser.error("--t265 needs POSES")
+        src = with_poses(open_source(args.recording), read_pose_file(args.poses), T_pose_cam=T265_T_POSE_CAM,
+                         T_map_pose=T_MAP_T265WORLD)
     else:
         src = open_source(args.recording, poses=args.poses)
     with src:

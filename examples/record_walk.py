@@ -1,9 +1,9 @@
 """Record a small simulated walk up a staircase as a rerun recording (recordings/stairs_walk.rrd).
 
-    .venv/bin/python examples/record_walk.py [--out recordings/stairs_walk.rrd] [--frames 24]
+    python examples/record_walk.py [--out recordings/stairs_walk.rrd] [--frames 24]
 
 The recording holds what `elevmap replay` needs (depth under a pinhole, exact poses) plus the map as
-it was built, and stays under 5 MB. Open it with `.venv/bin/rerun recordings/stairs_walk.rrd`.
+it was built, and stays under 5 MB. Open it with `rerun recordings/stairs_walk.rrd`.
 """
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ import argparse
 import os
 from pathlib import Path
 
-from elevmap.pipeline import MappingConfig, run_mapping
-from elevmap.sources.simulated import SimulatedWalk
+from elevmap import MappingConfig, run_mapping
+from elevmap.fileio import check_outputs
+from elevmap.sources import SimulatedWalk
 
 
 def main() -> None:
@@ -23,8 +24,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overwrite", action="store_true", help="replace an existing recording")
     args = parser.parse_args()
-    if os.path.exists(args.out) and not args.overwrite:
-        raise SystemExit(f"{args.out} exists; pass --overwrite to replace it")
+    try:
+        check_outputs({"--out": args.out}, args.overwrite)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from None
     src = SimulatedWalk("stairs", n_frames=args.frames, seed=args.seed)
     config = MappingConfig(length_m=6.0, resolution_m=0.04, mesh_every=1000, max_points=800, max_ellipsoids=60)
     summary = run_mapping(src, config, rrd_path=args.out, total=len(src), application_id="elevmap_stairs_walk",

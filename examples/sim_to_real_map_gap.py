@@ -10,7 +10,7 @@ The loop of ``elevmap gap`` end to end, on data whose truth is known:
    difference of the map's error statistics (RMSE, 2-sigma coverage, known cells, mean sigma)
    between the real world and each simulation; it should shrink once the fitted effects are in.
 
-Run:  .venv/bin/python examples/sim_to_real_map_gap.py [--scene boxes] [--frames 40] [--seed 0]
+Run:  python examples/sim_to_real_map_gap.py [--scene boxes] [--frames 40] [--seed 0]
 """
 
 from __future__ import annotations
