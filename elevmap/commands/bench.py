@@ -156,7 +156,7 @@ def _bench_height_scan(frames, n, bar):
 
 def _bench_render(frames, n, bar):
     """``render_depth`` of the stairs scene at 848x480 (numba) against its NumPy reference (1 frame)."""
-    from noise_model.sim.scene import DEFAULT_T_BASE_CAM, Scene, render_depth, render_depth_reference, walk
+    from noise_model.sim import DEFAULT_T_BASE_CAM, Scene, render_depth, render_depth_reference, walk
 
     scene = Scene.stairs_scene()
     K = nm.D435.intrinsics(848, 480)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 import noise_model as nm
-from noise_model.sim.scene import Scene, simulate_walk
+from noise_model.sim import Scene, simulate_walk
 
 from ..frame import Frame
 
@@ -82,7 +82,7 @@ class SimulatedWalk:
             if self.n_frames is not None:
                 self._len = int(self.n_frames)
             else:
-                from noise_model.sim.scene import walk
+                from noise_model.sim import walk
 
                 self._len = len(walk(self.path, rate_hz=self.rate_hz))
         return self._len
