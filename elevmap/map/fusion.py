@@ -248,6 +248,7 @@ def _spread_update(data, bi, bj, known, h_prior, N, W0, WZ0, WZZ0, WW0, spread_z
     s1 = data[INFO_SUM, bi, bj] if known else 0.0
     s2 = data[INFO_SQ_SUM, bi, bj] if known else 0.0
     if s1 > 0.0:
+        # Q - (n - 1) grows by the frame's own Q_b, its mean's distance S1 W0 / (S1 + W0) (m_b - h)^2 and -N
         excess = data[SCATTER, bi, bj] + qb + s1 * W0 / (s1 + W0) * (mb - h_prior) * (mb - h_prior) - N
     else:
         excess = qb - (N - 1.0)
@@ -263,8 +264,9 @@ def _spread_update(data, bi, bj, known, h_prior, N, W0, WZ0, WZZ0, WW0, spread_z
 @njit(**JIT)
 def _dl_tau2(excess, n, s1, s2, spread_z, ratio):
     """DerSimonian-Laird tau^2 = (Q - (n - 1)) / (S1 - S2 / S1) from the excess Q - (n - 1), where Q is
-    significant (above its 1 - SPREAD_ALPHA quantile under the noise model, Wilson-Hilferty) and the
-    points scatter more than ``ratio`` times their modelled variance (Q / (n - 1) > ratio); else 0."""
+    significant (above its 1 - spread_alpha quantile under the noise model, Wilson-Hilferty; ``spread_z``
+    is the normal quantile of 1 - spread_alpha) and the points scatter more than ``ratio`` times their
+    modelled variance (Q / (n - 1) > ratio); else 0."""
     if n < 2.0 or not s1 - s2 / s1 > 0.0:           # one point (or the weight of one): no spread to see
         return 0.0
     k = n - 1.0
