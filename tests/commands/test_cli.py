@@ -95,3 +95,54 @@ def test_name_lists_of_the_options_name_the_problem():
         check_names("a,,b", "--effects", None, "effect")
     with pytest.raises(ValueError, match="--heldout must be comma-separated captures or a list"):
         check_names(3, "--heldout", None, "capture")
+
+
+def test_help_builds_without_numba_or_rerun():
+    code = ("import sys\nfrom elevmap.cli import build_parser\nbuild_parser().format_help()\n"
+            "bad = [m for m in ('numba', 'rerun', 'noise_model') if m in sys.modules]\nprint(bad)\n"
+            "sys.exit(1 if bad else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
+    res = subprocess.run([sys.executable, "-m", "elevmap.cli", "compare", "--help"], capture_output=True, text=True)
+    assert res.returncode == 0 and "correlated_noise" in res.stdout and "e.g. --sim-effects" in res.stdout
+
+
+def test_user_messages_name_the_viewer_not_a_virtualenv():
+    from pathlib import Path
+
+    src = (Path(__file__).resolve().parents[2] / "elevmap" / "cli.py").read_text()
+    assert ".venv" not in src and "rerun {" in src
+
+
+def test_one_output_policy(tmp_path):
+    from elevmap.fileio import check_outputs
+
+    data = tmp_path / "captures.json"
+    data.write_text("{}")
+    old = tmp_path / "old.json"
+    old.write_text("{}")
+    got = check_outputs({"--json": tmp_path / "r.json", "--rrd": None}, inputs=[data])
+    assert got == {"--json": tmp_path / "r.json", "--rrd": None}
+    for outputs, kwargs, message in [
+        ({"--json": data}, dict(overwrite=True, inputs=[data]), "is an input of this run; refusing to overwrite"),
+        ({"--json": tmp_path}, {}, "is a directory"),
+        ({"--rrd": tmp_path / "no" / "r.rrd"}, {}, "folder does not exist"),
+        ({"--json": tmp_path / "a.x", "--rrd": tmp_path / "a.x"}, {}, "different files"),
+        ({"--json": old}, {}, "exists; pass --overwrite"),
+        ({"--json": old / "r.json"}, dict(create_folders=True), "is a file, not a folder"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            check_outputs(outputs, **kwargs)
+    assert check_outputs({"--json": old}, overwrite=True)["--json"] == old
+    assert check_outputs({"f": tmp_path / "new" / "f.png"}, create_folders=True)["f"] == tmp_path / "new" / "f.png"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["captures.json", "old.json"]
+
+
+def test_gap_refuses_an_existing_report_without_overwrite(tmp_path, capsys):
+    out = tmp_path / "gap.json"
+    out.write_text('{"format": "d435-gap/1"}')
+    assert main(["gap", str(tmp_path), "--json", str(out), "--no-progress"]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert main(["gap", "--selftest", "--json", str(out), "--no-progress", "--effects", "invalid_band"]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err
+    assert out.read_text() == '{"format": "d435-gap/1"}'

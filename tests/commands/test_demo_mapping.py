@@ -43,3 +43,12 @@ def test_cli_run_refuses_to_overwrite_and_replay_needs_rrd(tmp_path, capsys):
     js = tmp_path / "run.json"
     assert main(["run", "sim:slope", "--frames", "2", "--config", str(cfg), "--json", str(js), "--no-progress"]) == 0
     assert '"frames": 2' in js.read_text()
+
+
+def test_demo_writes_its_picture_beside_the_recording(tmp_path):
+    path = tmp_path / "walk.rrd"
+    summary = run_mapping_demo(path, seed=1, n_frames=3, show_progress=False)
+    png = tmp_path / "walk.png"
+    assert summary["png"] == str(png) and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["walk.png", "walk.rrd"]
+    assert png.stat().st_size < 300_000

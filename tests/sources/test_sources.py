@@ -745,3 +745,18 @@ def test_with_poses_wraps_any_source(tmp_path):
     log.write_text("".join(f"{k} {k} {k + 1}\n1 0 0 {k}\n0 1 0 0\n0 0 1 0\n0 0 0 1\n" for k in range(3)))
     got = [f.T_map_cam[0, 3] for f in with_poses(_ListSource(frames), log)]
     assert got == [0.0, 1.0, 2.0]
+
+
+def test_the_sources_package_exports_every_source_lazily():
+    import subprocess
+
+    code = ("import sys, elevmap.sources as S\n"
+            "heavy = [m for m in ('rerun', 'cv2', 'pyrealsense2', 'noise_model.sim') if m in sys.modules]\n"
+            "names = ['RrdSource', 'SimulatedWalk', 'open_source', 'read_viewer_raw', 'RealSenseFileSource',\n"
+            "         'DepthFolderSource', 'read_capture_set', 'with_poses']\n"
+            "missing = [n for n in names if not hasattr(S, n) or n not in S.__all__]\n"
+            "import elevmap\n"
+            "missing += [n for n in ('open_source', 'run_mapping', 'MappingConfig') if not hasattr(elevmap, n)]\n"
+            "print(heavy, missing); sys.exit(1 if heavy or missing else 0)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout + res.stderr
