@@ -1,5 +1,5 @@
 # Two commands do all set-up on a fresh machine:
-#   make demo   creates .venv, installs elevmap into it, runs the demo (writes demo.rrd)
+#   make demo   creates .venv, installs elevmap into it, runs the demo (writes demo.rrd and demo.png)
 #   make test   same set-up, then the whole test suite
 PYTHON ?= python3
 VENV   := .venv

@@ -91,24 +91,21 @@ MAPPERS = ("paper", "constant", "quadratic", "anybotics_d435", "paper_capped")
 #: Scenes of a comparison (those of :class:`elevmap.sources.simulated.SimulatedWalk`).
 SCENES = ("stairs", "boxes", "slope", "rough", "demo")
 #: The per-frame information cap of ``paper_capped``: a frame adds to a cell at most the information of
-#: n_eff = 1 average point. Why 1: (a) measured (stairs and boxes, 60 frames, seed 0, with and without
-#: correlated noise; caps 1, 2, 4, 8): 2-sigma coverage rises as the cap goes down to 1 (by +0.003 to
-#: +0.018 at 1) while the RMSE stays within +3 % of the uncapped map's; (b) physics: with the D435's
-#: error correlation of ~3 px at 848 x 480 a 4 cm cell at 1 m holds about one independent sample per
-#: frame (shared/notes/depth-effects.md, E9); (c) precedent: elevation_mapping_cupy averages a frame's
-#: points per cell, so that N points reduce the variance as much as one. The map's own default is no
-#: cap (``FusionParams.max_points_per_frame = None``): its spreads measure the excess scatter the cap
-#: only guesses, and the cap pushes 1-sigma coverage out of its band (README, "Calibration").
+#: n_eff = 1 average point. Why 1: (a) physics: with the D435's error correlation of about 3 px at
+#: 848 x 480, a 4 cm cell at 1 m holds about one independent sample per frame (docs/depth-effects.md,
+#: E9); (b) precedent: elevation_mapping_cupy averages a frame's points per cell, so that N points
+#: reduce the variance as much as one; (c) in comparisons the 2-sigma coverage rises as the cap goes
+#: down to 1 while the RMSE barely moves (docs/calibration.md). The map's own default is no cap
+#: (``FusionParams.max_points_per_frame = None``): its spreads measure the excess scatter the cap only
+#: guesses, and the cap pushes 1-sigma coverage out of its band (docs/calibration.md).
 DEFAULT_CAP = 1.0
 #: The variance ceiling ``FusionParams.max_variance`` [m^2] of every mapper of a comparison, unless the
 #: caller sets it: elevation_mapping_cupy's own (its ``parameter.py`` default). The map's default
 #: (0.04 m^2, sigma 0.2 m) is a consumer's "no height rather than one uncertain by more than 20 cm"; in a
 #: comparison it would decide the scores instead of the noise models, since each mapper is scored over
-#: its own known cells and a model that states large variances loses its far cells to the ceiling:
-#: with 0.04, quadratic (0.05 z^2 per point, above 0.04 beyond 0.9 m) knew 23 % of the boxes' cells
-#: against the paper mapper's 44 %, and its RMSE was that of its near cells (41 mm against its 65 mm
-#: with 1.0, over 50 %). The paper mapper's own scores barely move (known 44.0 -> 44.4 %, RMSE 57.8 ->
-#: 59.3 mm; README, "Calibration").
+#: its own known cells and a model that states large variances loses its far cells to the ceiling
+#: (quadratic's 0.05 z^2 per point exceeds 0.04 m^2 beyond 0.9 m, so it would be scored on its near cells
+#: only), while the paper mapper's own scores barely move (docs/calibration.md).
 COMPARE_MAX_VARIANCE = 1.0
 #: The keys every mapper's entry of the report has (the issue's schema).
 REPORT_KEYS = ("rmse_m", "p95_abs_m", "nll", "coverage_1sigma", "coverage_2sigma", "mean_sigma_m", "edge_rmse_m",

@@ -250,7 +250,7 @@ def run_noise_demo(path="demo.rrd", seed: int = 0, show_progress: bool = True, *
     show_progress : bool
         Show a tqdm progress bar (on stderr).
     width, height : int
-        Depth stream mode with D435 default intrinsics (424x240 keeps the file near 1 MB; 848x480
+        Depth stream mode with D435 default intrinsics (424x240 keeps the file small; 848x480
         works too).
     n_frames : int
         Frames simulated per capture for the statistics (one of them is logged).

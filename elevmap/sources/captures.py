@@ -1,6 +1,6 @@
 """Capture sets (format ``d435-captures/1``): planar-target recordings, read and written.
 
-The format is specified in ``shared/specs/capture-set.md``: a folder with ``captures.json`` and one
+The format is specified in ``docs/capture-set-format.md``: a folder with ``captures.json`` and one
 depth file per capture, a ``.npy`` of uint16 (frames, height, width) depth units (0 = no data) or a
 RealSense SDK recording (``.bag`` / ``.db3``)::
 
