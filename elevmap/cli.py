@@ -9,6 +9,7 @@ A ``ValueError`` is a user error: printed as ``elevmap COMMAND: error: ...``, ex
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import textwrap
@@ -275,7 +276,7 @@ def _cmd_run(args) -> int:
     src = open_source(args.source, poses=args.poses, intrinsics=args.intrinsics, frames=args.frames,
                       seed=args.seed)
     total = len(src) if hasattr(src, "__len__") else None
-    with src if hasattr(src, "__enter__") else _nullcontext(src) as frames:
+    with src if hasattr(src, "__enter__") else contextlib.nullcontext(src) as frames:
         summary = run_mapping(frames, config, rrd_path=args.rrd, spawn=args.spawn, total=total,
                               show_progress=not args.no_progress, notes=f"elevmap {args.command} {args.source}")
     _print_summary(summary)
@@ -284,17 +285,6 @@ def _cmd_run(args) -> int:
     if args.rrd:
         print(f"wrote {args.rrd}; {_open_hint(args.rrd)}")
     return 0
-
-
-class _nullcontext:
-    def __init__(self, obj):
-        self.obj = obj
-
-    def __enter__(self):
-        return self.obj
-
-    def __exit__(self, *exc):
-        return None
 
 
 def _cmd_bench(args) -> int:

@@ -7,11 +7,12 @@ Sources live in :mod:`elevmap.sources`; this module holds only the record and it
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from noise_model.checks import check_depth, check_intrinsics, check_pose_cov, check_transform
+from noise_model.geometry import depth_to_metres
 
 __all__ = ["Frame"]
 
@@ -77,12 +78,8 @@ class Frame:
 
     def depth_m(self) -> np.ndarray:
         """Depth in metres (float64), NaN where there is no data."""
-        from noise_model import depth_to_metres
-
         return depth_to_metres(self.depth, self.depth_scale)
 
     def with_pose(self, T_map_cam, pose_cov=None) -> "Frame":
         """A copy with another pose."""
-        from dataclasses import replace
-
         return replace(self, T_map_cam=T_map_cam, pose_cov=pose_cov)

@@ -16,7 +16,14 @@ import numpy as np
 
 import noise_model as nm
 from noise_model.numba_config import resolve_threads
-from noise_model.sim.targets import camera_extrinsics, render_floor, render_planar_target
+from noise_model.sim import (
+    DEFAULT_T_BASE_CAM, Scene, camera_extrinsics, render_depth, render_depth_reference, render_floor,
+    render_planar_target, walk,
+)
+
+from ..map import queries
+from ..map.elevation_map import ElevationMap
+from ..mapper import Camera, Mapper
 
 __all__ = ["bench_scene", "floor_scene", "run_bench", "format_table", "GROUPS"]
 
@@ -95,9 +102,6 @@ def _bench_noise(frames, reference_frames, n, bar):
 
 
 def _bench_mapper(frames, reference_frames, n, bar):
-    from ..map.elevation_map import ElevationMap
-    from ..mapper import Camera, Mapper
-
     out = []
     for width, height in MAPPER_SIZES:
         d, K, T, P = floor_scene(width, height)
@@ -119,8 +123,6 @@ def _bench_mapper(frames, reference_frames, n, bar):
 
 
 def _bench_move_to(frames, n, bar):
-    from ..map.elevation_map import ElevationMap
-
     m = ElevationMap(8.0, 0.04, nthreads=n)
     m.data[:] = 1.0
     k = [0]
@@ -134,9 +136,6 @@ def _bench_move_to(frames, n, bar):
 
 
 def _bench_height_scan(frames, n, bar):
-    from ..map import queries
-    from ..map.elevation_map import ElevationMap
-
     m = ElevationMap(8.0, 0.04, nthreads=n)
     xs, ys = m.cell_centres()
     X, Y = np.meshgrid(xs, ys, indexing="ij")
@@ -156,8 +155,6 @@ def _bench_height_scan(frames, n, bar):
 
 def _bench_render(frames, n, bar):
     """``render_depth`` of the stairs scene at 848x480 (numba) against its NumPy reference (1 frame)."""
-    from noise_model.sim import DEFAULT_T_BASE_CAM, Scene, render_depth, render_depth_reference, walk
-
     scene = Scene.stairs_scene()
     K = nm.D435.intrinsics(848, 480)
     T = walk([[0.0, 0.0], [1.0, 0.0]], scene=scene)[0] @ DEFAULT_T_BASE_CAM

@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 import noise_model as nm
-from noise_model.sim.targets import render_planar_target, simulate_target_frames
+from noise_model.sim import render_planar_target, simulate_target_frames
 
 from .. import viz
 from ..fileio import check_outputs
