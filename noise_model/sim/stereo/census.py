@@ -32,11 +32,13 @@ values, not the formula). Disparities whose right pixel falls outside the image 
 
 Box averaging
 -------------
-Before the semi-global aggregation the per-pixel costs are averaged over a (2 b + 1)^2 window
-(b = 3: 7 x 7), the census-plus-box-aggregation of the R200 that the D400 keeps under its
-semi-global stage (Keselman et al. 2017, arXiv 1705.05548). The mean keeps the 0..2046 scale, so the
-SGM penalties stay on the scale of one pixel's cost. Without it the cost curve of a single pixel is
-too coarse (integer Hamming steps) for a 1/32-px subpixel fit.
+Before the semi-global aggregation the per-pixel costs are averaged over a (2 b + 1)^2 window, the
+census-plus-box-aggregation of the R200 that the D400 keeps under its semi-global stage (Keselman
+et al. 2017, arXiv 1705.05548, describe 7 x 7 boxes on the R200; the matcher's default is the census
+window's 9 x 9, which brings the static, dot-layout-dependent part of the subpixel error down to the
+D435's measured plane-fit scatter, see docs/physical-d435.md). The mean keeps the 0..2046 scale, so
+the SGM penalties stay on the scale of one pixel's cost. Without it the cost curve of a single pixel
+is too coarse (integer Hamming steps) for a 1/32-px subpixel fit.
 """
 
 from __future__ import annotations
@@ -315,7 +317,7 @@ def _check_box(box_radius) -> int:
 
 
 def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: float = 26.0,
-                lambda_ad: float = 800.0, box_radius: int = 3, census=None,
+                lambda_ad: float = 800.0, box_radius: int = 4, census=None,
                 nthreads: int | None = None) -> np.ndarray:
     """Matching cost of every pixel and disparity, averaged over a box window (numba).
 
@@ -361,7 +363,7 @@ def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: fl
 
 
 def cost_volume_reference(left10, right10, n_disp: int, radius: int = 4, lambda_census: float = 26.0,
-                          lambda_ad: float = 800.0, box_radius: int = 3) -> np.ndarray:
+                          lambda_ad: float = 800.0, box_radius: int = 4) -> np.ndarray:
     """NumPy reference of :func:`cost_volume`."""
     L, R = _check_pair(left10, right10)
     b = _check_box(box_radius)

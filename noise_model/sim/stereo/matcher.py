@@ -2,7 +2,7 @@
 
 Stages (one rectified 10-bit pair in, one disparity map out)
 -----------------------------------------------------------
-1. Census transform and cost averaged over a 7 x 7 box (:mod:`.census`), semi-global aggregation S
+1. Census transform and cost averaged over a 9 x 9 box (:mod:`.census`), semi-global aggregation S
    over four paths (:mod:`.sgm`).
 2. Winner-take-all per left pixel x over the disparities whose right pixel exists,
    d = 0 .. min(D - 1, x) with D = 126 (the D4's fixed search range, so nothing nearer than
@@ -80,7 +80,7 @@ class MatcherParams:
         Robust-function scales of the census and absolute-difference terms (``hdad.lambdaCensus``,
         ``hdad.lambdaAD``).
     box_radius : int
-        Per-pixel costs are averaged over a (2 b + 1)^2 window before aggregation (7 x 7 -> 3).
+        Per-pixel costs are averaged over a (2 b + 1)^2 window before aggregation (9 x 9 -> 4).
     p1, p2 : int
         SGM penalties (``spc.sloK1Penalty``, ``spc.sloK2Penalty``).
     second_peak : int
@@ -105,7 +105,7 @@ class MatcherParams:
     n_disp: int = 126
     lambda_census: float = 26.0
     lambda_ad: float = 800.0
-    box_radius: int = 3
+    box_radius: int = 4
     p1: int = 60
     p2: int = 342
     second_peak: int = 325

@@ -1,0 +1,409 @@
+"""The two infrared imagers: surface geometry, radiance, lens blur, pixel integration, exposure, noise, bits.
+
+Frames and units
+----------------
+Camera frame x right, y down, z forward; pixel (u, v) looks along ((u - cx) / fx, (v - cy) / fy, 1).
+The left imager is the depth reference; the right one sits at +B along its x axis with the same
+orientation and intrinsics (a rectified pair). Irradiance in W/m^2, signal in photo-electrons (e-),
+output in digital numbers (DN).
+
+Radiometry
+----------
+A Lambertian surface of albedo rho under irradiance E (projector + ambient) has radiance
+L = rho E / pi. Through a lens of f-number N the image-plane irradiance is pi L / (4 N^2) times the
+relative illumination cos^k(alpha) (alpha the field angle, k = ``vignetting_power``), so a pixel of
+area A collects, per second::
+
+    rate = QE  rho E cos^k(alpha) / (4 N^2)  A  lambda / (h c)        [e-/s]
+
+The pixel pitch of a depth mode is the lens focal length over f in pixels (1.93 mm / f_px: 3 um
+native pixels at f = 643 px, 4.5 um effective at 848x480), so lower-resolution modes collect more
+light per pixel.
+
+Image formation (:func:`render_rates`, :func:`expose`)
+-----------------------------------------------------
+* Each pixel is sampled at ``supersample`` x ``supersample`` points (the caller renders the scene
+  at that resolution with :func:`sample_intrinsics`); the lens blur, a Gaussian of
+  ``blur_sigma_native_px`` native pixels, is applied at the sample resolution, and the samples of a
+  pixel are averaged (pixel integration).
+* Exposure: manual (``exposure_s``, ``gain``) or auto: the exposure time that brings the left
+  image's mean signal to ``ae_target`` of full scale, at most ``max_exposure_s``, then analogue gain
+  up to ``max_gain`` (:func:`auto_exposure`).
+* Per frame: the projector's share of the rate times a fresh laser-speckle factor (:func:`expose`),
+  then photo-electrons ~ Poisson(rate t) (shot noise), plus read noise N(0, sigma_read^2),
+  times gain, converted at full_well / 1023 e- per 10-bit DN, plus the black level, rounded and
+  clipped to 0..1023; the 8-bit output is the 10-bit value's top eight bits (DN // 4). Fresh noise
+  every frame; the scene, the pattern and therefore the noise-free rates do not change.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from numba import njit, prange
+from scipy.ndimage import gaussian_filter
+
+from ...numba_config import JIT, resolve_threads, threads
+
+__all__ = [
+    "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
+    "signal_rate", "integrate_samples", "auto_exposure", "expose", "PLANCK_J_S", "LIGHT_M_S",
+]
+
+PLANCK_J_S = 6.62607015e-34
+LIGHT_M_S = 299792458.0
+
+
+@dataclass(frozen=True)
+class ImagerModel:
+    """One infrared imager of the D435 (OmniVision OV9282-class global-shutter sensor behind an f/2 lens).
+
+    Attributes
+    ----------
+    focal_length_m : float
+        Lens focal length (1.93 mm).
+    native_focal_px : float
+        Focal length in native sensor pixels (1.93 mm / 3 um = 643).
+    f_number : float
+        Lens f-number N.
+    quantum_efficiency : float
+        Electrons per photon at ``wavelength_m``.
+    wavelength_m : float
+        Projector wavelength (850 nm).
+    full_well_e : float
+        Electrons at 10-bit full scale with unit gain.
+    read_noise_e : float
+        Read noise [e-] per pixel and frame.
+    black_level_dn : float
+        Offset added to every pixel [10-bit DN].
+    output_bits : int
+        8 (the D435's Y8 infrared stream) or 10.
+    blur_sigma_native_px : float
+        Lens blur (Gaussian sigma) in native pixels.
+    supersample : int
+        Samples per pixel along each axis.
+    vignetting_power : float
+        Relative illumination cos^k of the field angle.
+    exposure_s, gain : float or None
+        Manual exposure [s] and analogue gain; exposure None = auto exposure.
+    ae_target : float
+        Auto exposure's mean signal as a fraction of full scale (the D435 default set point 1536 of
+        a 12-bit scale).
+    max_exposure_s : float
+        Longest exposure (one frame at 30 fps).
+    max_gain : float
+        Largest analogue gain (the D435's gain 248 over its base 16).
+    """
+
+    focal_length_m: float = 1.93e-3
+    native_focal_px: float = 643.3
+    f_number: float = 2.0
+    quantum_efficiency: float = 0.30
+    wavelength_m: float = 850e-9
+    full_well_e: float = 6000.0
+    read_noise_e: float = 5.0
+    black_level_dn: float = 8.0
+    output_bits: int = 8
+    blur_sigma_native_px: float = 0.7
+    supersample: int = 2
+    vignetting_power: float = 2.0
+    exposure_s: float | None = None
+    gain: float = 1.0
+    ae_target: float = 1536.0 / 4096.0
+    max_exposure_s: float = 0.033
+    max_gain: float = 248.0 / 16.0
+
+    def __post_init__(self):
+        for name in ("focal_length_m", "native_focal_px", "f_number", "wavelength_m", "full_well_e",
+                     "max_exposure_s", "max_gain", "gain"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+        for name in ("read_noise_e", "black_level_dn", "blur_sigma_native_px", "vignetting_power"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
+        if not (0.0 < self.quantum_efficiency <= 1.0):
+            raise ValueError(f"quantum_efficiency must lie in (0, 1], got {self.quantum_efficiency!r}")
+        if not (0.0 < self.ae_target < 1.0):
+            raise ValueError(f"ae_target must lie in (0, 1), got {self.ae_target!r}")
+        if self.output_bits not in (8, 10):
+            raise ValueError(f"output_bits must be 8 or 10, got {self.output_bits!r}")
+        if int(self.supersample) != self.supersample or not 1 <= self.supersample <= 8:
+            raise ValueError(f"supersample must be an integer in [1, 8], got {self.supersample!r}")
+        if self.exposure_s is not None and not (math.isfinite(self.exposure_s) and self.exposure_s > 0):
+            raise ValueError(f"exposure_s must be None (auto) or > 0, got {self.exposure_s!r}")
+
+    def pixel_area_m2(self, focal_px: float) -> float:
+        """Effective pixel area [m^2] of a mode with focal length ``focal_px``: (focal_length_m / f_px)^2."""
+        return (self.focal_length_m / focal_px) ** 2
+
+    def electrons_per_dn(self) -> float:
+        """Conversion at unit gain [e- per 10-bit DN]."""
+        return self.full_well_e / 1023.0
+
+
+class Exposure(NamedTuple):
+    """Exposure time [s] and analogue gain of a frame."""
+
+    time_s: float
+    gain: float
+
+
+# ---------------------------------------------------------------------------------------------
+# surface geometry from a rendered z-depth image
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(**JIT)
+def _pick(z0, za, zb):
+    """Which neighbour (+1: b, -1: a, 0: none) to difference with: finite, smaller |dz|, b on ties."""
+    fa = np.isfinite(za)
+    fb = np.isfinite(zb)
+    if fb and (not fa or abs(zb - z0) <= abs(za - z0)):
+        return 1
+    if fa:
+        return -1
+    return 0
+
+
+@njit(parallel=True, **JIT)
+def _geometry_kernel(z, intr, pts, nrm):
+    h, w = z.shape
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    for v in prange(h):
+        for u in range(w):
+            z0 = z[v, u]
+            if not np.isfinite(z0):
+                for k in range(3):
+                    pts[v, u, k] = np.nan
+                    nrm[v, u, k] = np.nan
+                continue
+            a = (u - cx) / fx
+            b = (v - cy) / fy
+            px, py, pz = a * z0, b * z0, z0
+            pts[v, u, 0] = px
+            pts[v, u, 1] = py
+            pts[v, u, 2] = pz
+            su = _pick(z0, z[v, u - 1] if u > 0 else np.nan, z[v, u + 1] if u < w - 1 else np.nan)
+            sv = _pick(z0, z[v - 1, u] if v > 0 else np.nan, z[v + 1, u] if v < h - 1 else np.nan)
+            if su == 0 or sv == 0:
+                r = math.sqrt(px * px + py * py + pz * pz)
+                nrm[v, u, 0] = -px / r
+                nrm[v, u, 1] = -py / r
+                nrm[v, u, 2] = -pz / r
+                continue
+            zu = z[v, u + su]
+            zv = z[v + sv, u]
+            tux = su * (((u + su - cx) / fx) * zu - px)
+            tuy = su * (b * zu - py)
+            tuz = su * (zu - pz)
+            tvx = sv * (a * zv - px)
+            tvy = sv * (((v + sv - cy) / fy) * zv - py)
+            tvz = sv * (zv - pz)
+            nx = tuy * tvz - tuz * tvy
+            ny = tuz * tvx - tux * tvz
+            nz = tux * tvy - tuy * tvx
+            r = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if nx * px + ny * py + nz * pz > 0.0:
+                r = -r
+            nrm[v, u, 0] = nx / r
+            nrm[v, u, 1] = ny / r
+            nrm[v, u, 2] = nz / r
+
+
+def _intr(K) -> np.ndarray:
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise ValueError("K must be a 3x3 camera matrix with positive focal lengths")
+    return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+
+
+def surface_geometry(z, K, nthreads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points and unit normals of a z-depth image (numba).
+
+    Parameters
+    ----------
+    z : ndarray, shape (H, W)
+        z-depth [m]; NaN = no surface.
+    K : ndarray, shape (3, 3)
+        Intrinsics [px] of that image.
+    nthreads : int, optional
+        numba threads; the result does not depend on it.
+
+    Returns
+    -------
+    points_cam, normals_cam : ndarray, shape (H, W, 3)
+        Points [m] and unit normals, NaN where z is. The normal is the cross product of one-sided
+        differences to the right/left and lower/upper neighbour, each time the neighbour whose depth
+        differs least (so depth edges do not tilt it), turned towards the camera; a pixel with no
+        valid neighbour along an axis gets the normal facing the camera (-ray direction).
+    """
+    zz = np.ascontiguousarray(z, dtype=np.float64)
+    if zz.ndim != 2:
+        raise ValueError(f"z must be a 2-D depth image, got shape {zz.shape}")
+    pts = np.empty(zz.shape + (3,))
+    nrm = np.empty(zz.shape + (3,))
+    with threads(resolve_threads(nthreads)):
+        _geometry_kernel(zz, _intr(K), pts, nrm)
+    return pts, nrm
+
+
+def surface_geometry_reference(z, K) -> tuple[np.ndarray, np.ndarray]:
+    """NumPy reference of :func:`surface_geometry`."""
+    z = np.asarray(z, dtype=np.float64)
+    fx, fy, cx, cy = _intr(K)
+    h, w = z.shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    a, b = (u - cx) / fx, (v - cy) / fy
+    P = np.stack([a * z, b * z, z], axis=-1)
+    nan_col = np.full((h, 1), np.nan)
+    nan_row = np.full((1, w), np.nan)
+
+    def pick(za, zb):
+        fa, fb = np.isfinite(za), np.isfinite(zb)
+        use_b = fb & (~fa | (np.abs(zb - z) <= np.abs(za - z)))
+        return np.where(use_b, 1, np.where(fa, -1, 0))
+
+    su = pick(np.hstack([nan_col, z[:, :-1]]), np.hstack([z[:, 1:], nan_col]))
+    sv = pick(np.vstack([nan_row, z[:-1]]), np.vstack([z[1:], nan_row]))
+    uu = np.clip(u.astype(int) + su, 0, w - 1)
+    vv = np.clip(v.astype(int) + sv, 0, h - 1)
+    rows, cols = v.astype(int), u.astype(int)
+    zu, zv = z[rows, uu], z[vv, cols]
+    tu = su[..., None] * (np.stack([((uu - cx) / fx) * zu, b * zu, zu], axis=-1) - P)
+    tv = sv[..., None] * (np.stack([a * zv, ((vv - cy) / fy) * zv, zv], axis=-1) - P)
+    n = np.cross(tu, tv)
+    n *= np.where((n * P).sum(axis=-1) > 0, -1.0, 1.0)[..., None]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        facing = -P / np.linalg.norm(P, axis=-1, keepdims=True)
+    n = np.where(((su == 0) | (sv == 0))[..., None], facing, n)
+    bad = ~np.isfinite(z)
+    P[bad] = np.nan
+    n[bad] = np.nan
+    return P, n
+
+
+# ---------------------------------------------------------------------------------------------
+# radiometry and image formation
+# ---------------------------------------------------------------------------------------------
+
+
+def sample_intrinsics(K, supersample: int) -> np.ndarray:
+    """Intrinsics of the sample grid: s x s samples per pixel at the centres of its sub-squares.
+
+    Sample (i, j) of pixel (u, v) sits at (u + (i + 0.5) / s - 0.5, v + (j + 0.5) / s - 0.5), so the
+    sample image has f_s = s f and c_s = s c + (s - 1) / 2 (pixel centres at integer coordinates).
+    """
+    s = int(supersample)
+    K = np.asarray(K, dtype=np.float64).copy()
+    K[0, 0] *= s
+    K[1, 1] *= s
+    K[0, 2] = s * K[0, 2] + (s - 1) / 2.0
+    K[1, 2] = s * K[1, 2] + (s - 1) / 2.0
+    return K
+
+
+def signal_rate(albedo, irradiance_w_m2, K_samples, focal_px: float, model: ImagerModel) -> np.ndarray:
+    """Photo-electron rate [e-/s] per pixel area at each sample (the module docstring's equation).
+
+    Parameters
+    ----------
+    albedo, irradiance_w_m2 : ndarray, shape (Hs, Ws)
+        Surface albedo and total irradiance at each sample; NaN (no surface) gives 0.
+    K_samples : ndarray, shape (3, 3)
+        Intrinsics of the sample grid (field angles).
+    focal_px : float
+        Focal length of the output pixels (pixel area).
+    model : ImagerModel
+        The imager.
+    """
+    rho = np.asarray(albedo, dtype=np.float64)
+    E = np.asarray(irradiance_w_m2, dtype=np.float64)
+    hs, ws = rho.shape
+    fx, fy, cx, cy = _intr(K_samples)
+    a2 = ((np.arange(ws) - cx) / fx) ** 2
+    b2 = ((np.arange(hs) - cy) / fy) ** 2
+    rel = (1.0 + b2[:, None] + a2[None, :]) ** (-0.5 * model.vignetting_power)
+    photon_j = PLANCK_J_S * LIGHT_M_S / model.wavelength_m
+    k = model.quantum_efficiency * model.pixel_area_m2(focal_px) / (4.0 * model.f_number ** 2 * photon_j)
+    rate = k * rho * E * rel
+    return np.where(np.isfinite(rate), np.maximum(rate, 0.0), 0.0)
+
+
+def integrate_samples(rate_samples, supersample: int, blur_sigma_px: float) -> np.ndarray:
+    """Lens blur at the sample resolution, then the mean over each pixel's s x s samples.
+
+    ``blur_sigma_px`` is in output pixels (the sample grid uses s times that). Returns (H, W).
+    """
+    s = int(supersample)
+    r = np.asarray(rate_samples, dtype=np.float64)
+    if blur_sigma_px > 0:
+        r = gaussian_filter(r, sigma=blur_sigma_px * s, mode="nearest", truncate=4.0)
+    hs, ws = r.shape
+    if hs % s or ws % s:
+        raise ValueError(f"sample image {ws}x{hs} is not a multiple of the supersampling {s}")
+    return r.reshape(hs // s, s, ws // s, s).mean(axis=(1, 3))
+
+
+def auto_exposure(rate_left, model: ImagerModel) -> Exposure:
+    """Exposure time and gain that bring the mean signal of ``rate_left`` [e-/s] to ``ae_target``.
+
+    t = ae_target full_well / mean(rate), at most ``max_exposure_s``; if that is not enough the gain
+    makes up the rest, at most ``max_gain``. A manual ``exposure_s`` is returned unchanged.
+    """
+    if model.exposure_s is not None:
+        return Exposure(float(model.exposure_s), float(model.gain))
+    target_e = model.ae_target * model.full_well_e
+    mean_rate = float(np.mean(rate_left))
+    if not mean_rate > 0:
+        return Exposure(model.max_exposure_s, model.max_gain)
+    t = target_e / mean_rate
+    if t <= model.max_exposure_s:
+        return Exposure(t, 1.0)
+    gain = min(model.max_gain, target_e / (mean_rate * model.max_exposure_s))
+    return Exposure(model.max_exposure_s, gain)
+
+
+def expose(rate_ambient, rate_projector, exposure: Exposure, rng: np.random.Generator, model: ImagerModel,
+           speckle_contrast: float = 0.0) -> np.ndarray:
+    """One frame of an imager: laser speckle, shot and read noise, gain, conversion, black level, bits.
+
+    Parameters
+    ----------
+    rate_ambient, rate_projector : ndarray, shape (H, W)
+        Noise-free photo-electron rates [e-/s] per pixel from the ambient light and from the projector.
+    exposure : Exposure
+        Exposure time [s] and gain.
+    rng : numpy.random.Generator
+        Draws the noise in this order: speckle (if any), Poisson shot noise, Gaussian read noise.
+    model : ImagerModel
+        The imager.
+    speckle_contrast : float
+        Contrast C (std / mean) of the laser speckle on the projector's light: each pixel's projector
+        rate is multiplied by a fresh Gamma(1 / C^2, C^2) factor (mean 1, sd C; the intensity
+        statistics of speckle averaged over a few grains), independently in the two imagers, which see
+        different speckle through their own apertures. 0 = none.
+
+    Returns
+    -------
+    ndarray, shape (H, W)
+        uint8 (8-bit output: the 10-bit value // 4) or uint16 (10-bit levels).
+    """
+    proj = np.asarray(rate_projector, dtype=np.float64)
+    if speckle_contrast > 0:
+        k = 1.0 / speckle_contrast ** 2
+        proj = proj * rng.gamma(k, 1.0 / k, proj.shape)
+    lam = np.maximum((np.asarray(rate_ambient, dtype=np.float64) + proj) * exposure.time_s, 0.0)
+    electrons = rng.poisson(lam).astype(np.float64)
+    if model.read_noise_e > 0:
+        electrons += rng.normal(0.0, model.read_noise_e, lam.shape)
+    dn = np.floor(electrons * exposure.gain / model.electrons_per_dn() + model.black_level_dn + 0.5)
+    dn10 = np.clip(dn, 0, 1023).astype(np.uint16)
+    if model.output_bits == 10:
+        return dn10
+    return (dn10 // 4).astype(np.uint8)
