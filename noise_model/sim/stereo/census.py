@@ -309,6 +309,13 @@ def _check_pair(left10, right10):
     return L, R
 
 
+def _buffer(out, shape) -> np.ndarray:
+    """``out`` if it is a C-contiguous uint16 array of ``shape``, else a new one."""
+    if out is not None and out.shape == shape and out.dtype == np.uint16 and out.flags.c_contiguous:
+        return out
+    return np.empty(shape, np.uint16)
+
+
 def _check_box(box_radius) -> int:
     b = int(box_radius)
     if b != box_radius or b < 0 or (2 * b + 1) ** 2 * COST_MAX > np.iinfo(np.int32).max:
@@ -317,7 +324,7 @@ def _check_box(box_radius) -> int:
 
 
 def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: float = 26.0,
-                lambda_ad: float = 800.0, box_radius: int = 4, census=None,
+                lambda_ad: float = 800.0, box_radius: int = 4, census=None, out=None,
                 nthreads: int | None = None) -> np.ndarray:
     """Matching cost of every pixel and disparity, averaged over a box window (numba).
 
@@ -336,6 +343,8 @@ def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: fl
         (clamped at the image border; rounded to the nearest integer); 0 = no averaging.
     census : tuple of 4 arrays, optional
         ``(lo_l, hi_l, lo_r, hi_r)`` already computed by :func:`census_transform`.
+    out : ndarray, shape (H, W, n_disp), uint16, optional
+        Written in place and returned (a buffer reused from frame to frame).
     nthreads : int, optional
         numba threads; the result does not depend on it.
 
@@ -356,7 +365,7 @@ def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: fl
         lo_r, hi_r = census_transform(R, radius, n)
     else:
         lo_l, hi_l, lo_r, hi_r = census
-    out = np.empty(L.shape + (n_disp,), np.uint16)
+    out = _buffer(out, L.shape + (n_disp,))
     with threads(n):
         _cost_kernel(lo_l, hi_l, lo_r, hi_r, L, R, lut_c, lut_a, b, out)
     return out

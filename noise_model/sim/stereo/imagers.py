@@ -50,7 +50,7 @@ from ...numba_config import JIT, resolve_threads, threads
 
 __all__ = [
     "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
-    "signal_rate", "integrate_samples", "auto_exposure", "expose", "PLANCK_J_S", "LIGHT_M_S",
+    "signal_rate", "integrate_samples", "auto_exposure", "expose", "to_map_frame", "PLANCK_J_S", "LIGHT_M_S",
 ]
 
 PLANCK_J_S = 6.62607015e-34
@@ -213,6 +213,26 @@ def _geometry_kernel(z, intr, pts, nrm):
             nrm[v, u, 0] = nx / r
             nrm[v, u, 1] = ny / r
             nrm[v, u, 2] = nz / r
+
+
+@njit(parallel=True, **JIT)
+def _rigid_kernel(pts, nrm, R, t, out_p, out_n):
+    for i in prange(pts.shape[0]):
+        for r in range(3):
+            out_p[i, r] = R[r, 0] * pts[i, 0] + R[r, 1] * pts[i, 1] + R[r, 2] * pts[i, 2] + t[r]
+            out_n[i, r] = R[r, 0] * nrm[i, 0] + R[r, 1] * nrm[i, 1] + R[r, 2] * nrm[i, 2]
+
+
+def to_map_frame(points_cam, normals_cam, T_map_cam, nthreads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) and normals (N, 3) from the camera frame into the map frame: R p + t and R n (numba)."""
+    p = np.ascontiguousarray(points_cam, dtype=np.float64).reshape(-1, 3)
+    n = np.ascontiguousarray(normals_cam, dtype=np.float64).reshape(-1, 3)
+    T = np.asarray(T_map_cam, dtype=np.float64)
+    out_p = np.empty_like(p)
+    out_n = np.empty_like(n)
+    with threads(resolve_threads(nthreads)):
+        _rigid_kernel(p, n, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), out_p, out_n)
+    return out_p, out_n
 
 
 def _intr(K) -> np.ndarray:

@@ -433,7 +433,7 @@ def _pair(left, right, params: MatcherParams):
     return L, R
 
 
-def match(left, right, params="default", nthreads: int | None = None) -> MatchResult:
+def match(left, right, params="default", nthreads: int | None = None, workspace: dict | None = None) -> MatchResult:
     """Disparity of a rectified infrared pair as the D4 computes it (stages 1-7; numba).
 
     Parameters
@@ -444,6 +444,9 @@ def match(left, right, params="default", nthreads: int | None = None) -> MatchRe
         A preset name ("default", "high_accuracy") or parameters.
     nthreads : int, optional
         numba threads; the result does not depend on it.
+    workspace : dict, optional
+        Holds the cost and aggregation volumes between calls (pass the same dict every frame: two
+        (H, W, 126) uint16 volumes are not allocated again).
 
     Returns
     -------
@@ -460,10 +463,12 @@ def match(left, right, params="default", nthreads: int | None = None) -> MatchRe
     n = resolve_threads(nthreads)
     lo_l, hi_l = census_transform(L, p.census_radius, n)
     lo_r, hi_r = census_transform(R, p.census_radius, n)
+    ws = workspace if workspace is not None else {}
     C = cost_volume(L, R, p.n_disp, p.census_radius, p.lambda_census, p.lambda_ad, p.box_radius,
-                    census=(lo_l, hi_l, lo_r, hi_r), nthreads=n)
-    S = aggregate(C, p.p1, p.p2, n)
-    del C
+                    census=(lo_l, hi_l, lo_r, hi_r), out=ws.get("cost"), nthreads=n)
+    S = aggregate(C, p.p1, p.p2, out=ws.get("aggregated"), nthreads=n)
+    if workspace is not None:
+        workspace["cost"], workspace["aggregated"] = C, S
     tex = texture_measure(L, p.census_radius, n) if p.texture_difference > 0 else np.zeros(L.shape, np.int32)
     res = winner_take_all(S, tex, p, n)
     return remove_small_segments(res.disparity, res.reason, p.rsm_diff, p.rsm_remove)

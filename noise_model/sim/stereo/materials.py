@@ -84,34 +84,80 @@ def _node(ix, iy, k, table):
     return table[h & _TABLE_MASK]
 
 
+@njit(**JIT)
+def _fbm_at(a, b, inv_spacing, weights, table):
+    acc = 0.0
+    for k in range(inv_spacing.shape[0]):
+        u = a * inv_spacing[k]
+        v = b * inv_spacing[k]
+        fu = np.floor(u)
+        fv = np.floor(v)
+        ix = np.int64(fu)
+        iy = np.int64(fv)
+        tu = _fade(u - fu)
+        tv = _fade(v - fv)
+        v00 = _node(ix, iy, k, table)
+        v10 = _node(ix + 1, iy, k, table)
+        v01 = _node(ix, iy + 1, k, table)
+        v11 = _node(ix + 1, iy + 1, k, table)
+        top = v00 + tu * (v10 - v00)
+        bottom = v01 + tu * (v11 - v01)
+        acc += weights[k] * (top + tv * (bottom - top))
+    return acc
+
+
 @njit(parallel=True, **JIT)
 def _fbm_kernel(s, inv_spacing, weights, table, out):
-    n = s.shape[0]
-    n_oct = inv_spacing.shape[0]
-    for i in prange(n):
+    for i in prange(s.shape[0]):
         a = s[i, 0]
         b = s[i, 1]
         if not (np.isfinite(a) and np.isfinite(b)):
             out[i] = np.nan
+        else:
+            out[i] = _fbm_at(a, b, inv_spacing, weights, table)
+
+
+@njit(parallel=True, **JIT)
+def _texture_kernel(p, nrm, inv_spacing, weights, table, mean, contrast, weave_k, weave_contrast, out):
+    """Tri-planar coordinates, fBm and weave of :class:`Texture` in one pass (see Texture.evaluate_reference)."""
+    for i in prange(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            out[i] = np.nan
             continue
-        acc = 0.0
-        for k in range(n_oct):
-            u = a * inv_spacing[k]
-            v = b * inv_spacing[k]
-            fu = np.floor(u)
-            fv = np.floor(v)
-            ix = np.int64(fu)
-            iy = np.int64(fv)
-            tu = _fade(u - fu)
-            tv = _fade(v - fv)
-            v00 = _node(ix, iy, k, table)
-            v10 = _node(ix + 1, iy, k, table)
-            v01 = _node(ix, iy + 1, k, table)
-            v11 = _node(ix + 1, iy + 1, k, table)
-            top = v00 + tu * (v10 - v00)
-            bottom = v01 + tu * (v11 - v01)
-            acc += weights[k] * (top + tv * (bottom - top))
-        out[i] = acc
+        ax, ay, az = abs(nrm[i, 0]), abs(nrm[i, 1]), abs(nrm[i, 2])
+        ax = ax if np.isfinite(ax) else 0.0
+        ay = ay if np.isfinite(ay) else 0.0
+        az = az if np.isfinite(az) else 0.0
+        if az >= ay and az >= ax:
+            s1, s2 = x, y
+        elif ay >= ax:
+            s1, s2 = x, z
+        else:
+            s1, s2 = y, z
+        rel = contrast * _fbm_at(s1, s2, inv_spacing, weights, table)
+        if weave_k > 0.0:
+            rel += weave_contrast * np.cos(weave_k * s1) * np.cos(weave_k * s2)
+        out[i] = min(1.0, max(0.0, mean * (1.0 + rel)))
+
+
+@njit(parallel=True, **JIT)
+def _assign_kernel(p, lo, hi, ground_z, tol, use_ground, out):
+    """Material code per point: region index, then len(lo) for the ground, len(lo) + 1 default, -1 NaN."""
+    n_regions = lo.shape[0]
+    for i in prange(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            out[i] = -1
+            continue
+        code = n_regions + 1
+        for r in range(n_regions):
+            if lo[r, 0] <= x <= hi[r, 0] and lo[r, 1] <= y <= hi[r, 1] and lo[r, 2] <= z <= hi[r, 2]:
+                code = r
+                break
+        if code == n_regions + 1 and use_ground and abs(z - ground_z) <= tol:
+            code = n_regions
+        out[i] = code
 
 
 def _octaves(wavelength_m: float, octaves: int, hurst: float):
@@ -214,6 +260,8 @@ class Uniform:
         p = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
         return np.where(np.isfinite(p).all(axis=1), self.albedo, np.nan)
 
+    evaluate_reference = evaluate
+
 
 @dataclass(frozen=True)
 class Texture:
@@ -264,9 +312,21 @@ class Texture:
         check_albedo(self.mean * (1.0 - amp), f"{self.name} (darkest point, mean x (1 - amplitudes))")
 
     def evaluate(self, points_map, normals_map, nthreads: int | None = None) -> np.ndarray:
-        """Albedo (N,) at surface points (N, 3) with normals (N, 3), map frame; NaN where the point is NaN."""
+        """Albedo (N,) at surface points (N, 3) with normals (N, 3), map frame; NaN where the point is NaN (numba)."""
+        p = np.ascontiguousarray(points_map, dtype=np.float64).reshape(-1, 3)
+        n = np.ascontiguousarray(normals_map, dtype=np.float64).reshape(-1, 3)
+        inv, w = _octaves(self.wavelength_m, self.octaves, self.hurst)
+        k = 2.0 * np.pi / self.weave_period_m if self.weave_period_m > 0 and self.weave_contrast > 0 else 0.0
+        out = np.empty(len(p))
+        with threads(resolve_threads(nthreads)):
+            _texture_kernel(p, n, inv, w, _table(self.seed), float(self.mean), float(self.contrast), k,
+                            float(self.weave_contrast), out)
+        return out
+
+    def evaluate_reference(self, points_map, normals_map) -> np.ndarray:
+        """NumPy reference of :meth:`evaluate`."""
         s = triplanar_coordinates(points_map, normals_map)
-        rel = self.contrast * fbm(s, self.wavelength_m, self.octaves, self.hurst, self.seed, nthreads)
+        rel = self.contrast * fbm_reference(s, self.wavelength_m, self.octaves, self.hurst, self.seed)
         if self.weave_period_m > 0 and self.weave_contrast > 0:
             k = 2.0 * np.pi / self.weave_period_m
             rel += self.weave_contrast * np.cos(k * s[:, 0]) * np.cos(k * s[:, 1])
@@ -333,6 +393,28 @@ class MaterialMap:
 
     def evaluate(self, points_map, normals_map, nthreads: int | None = None) -> np.ndarray:
         """Albedo (N,) of surface points (N, 3) with normals (N, 3) [map frame]; NaN where the point is NaN."""
+        p = np.ascontiguousarray(points_map, dtype=np.float64).reshape(-1, 3)
+        nrm = np.ascontiguousarray(normals_map, dtype=np.float64).reshape(-1, 3)
+        n = resolve_threads(nthreads)
+        lo = np.array([r[0] for r in self.regions], dtype=np.float64).reshape(-1, 3)
+        hi = np.array([r[1] for r in self.regions], dtype=np.float64).reshape(-1, 3)
+        use_ground = self.ground is not None and self.ground_z is not None
+        code = np.empty(len(p), np.int32)
+        with threads(n):
+            _assign_kernel(p, lo, hi, float(self.ground_z) if use_ground else 0.0, float(self.ground_tol_m),
+                           use_ground, code)
+        materials = [r[2] for r in self.regions] + [self.ground, self.default]
+        present = np.flatnonzero(np.bincount(code + 1, minlength=len(materials) + 1)[1:])
+        if len(present) == 1:                      # one material for every surface point (NaN stays NaN)
+            return materials[present[0]].evaluate(p, nrm, n)
+        out = np.full(len(p), np.nan)
+        for c in present:                          # a few materials: evaluating all points beats gathering
+            m = code == c
+            out[m] = materials[c].evaluate(p, nrm, n)[m]
+        return out
+
+    def evaluate_reference(self, points_map, normals_map) -> np.ndarray:
+        """NumPy reference of :meth:`evaluate` (the rules by masks, each material's own reference)."""
         p = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
         nrm = np.asarray(normals_map, dtype=np.float64).reshape(-1, 3)
         out = np.full(len(p), np.nan)
@@ -340,19 +422,18 @@ class MaterialMap:
         for lo, hi, mat in self.regions:
             m = todo & np.all((p >= lo) & (p <= hi), axis=1)
             if m.any():
-                out[m] = mat.evaluate(p[m], nrm[m], nthreads)
+                out[m] = mat.evaluate_reference(p[m], nrm[m])
                 todo &= ~m
         if self.ground is not None and self.ground_z is not None:
             m = todo & (np.abs(p[:, 2] - self.ground_z) <= self.ground_tol_m)
             if m.any():
-                out[m] = self.ground.evaluate(p[m], nrm[m], nthreads)
+                out[m] = self.ground.evaluate_reference(p[m], nrm[m])
                 todo &= ~m
         if todo.any():
-            out[todo] = self.default.evaluate(p[todo], nrm[todo], nthreads)
+            out[todo] = self.default.evaluate_reference(p[todo], nrm[todo])
         return out
 
 
 def _check_material(mat, where: str) -> None:
-    if not hasattr(mat, "evaluate"):
-        raise ValueError(f"material of {where} must be a Uniform or a Texture (an object with evaluate), "
-                         f"got {type(mat).__name__}")
+    if not isinstance(mat, (Uniform, Texture)):
+        raise ValueError(f"material of {where} must be a Uniform or a Texture, got {type(mat).__name__}")

@@ -30,7 +30,7 @@ import numpy as np
 
 from ...numba_config import resolve_threads
 from .imagers import Exposure, ImagerModel, auto_exposure, expose, integrate_samples, sample_intrinsics, signal_rate
-from .imagers import surface_geometry
+from .imagers import surface_geometry, to_map_frame
 from .materials import MaterialMap, concrete, white_wall
 from .matcher import MatchResult, disparity_to_depth, match, preset
 from .projector import Projector, ProjectorView
@@ -167,6 +167,7 @@ class StereoD435:
         if not hasattr(self.materials, "evaluate"):
             raise ValueError("materials must be a MaterialMap (or a material with evaluate)")
         self.nthreads = resolve_threads(self.nthreads)
+        self._workspace = {}                      # the matcher's volumes, reused from frame to frame
 
     # -- geometry -------------------------------------------------------------------------------
     @property
@@ -186,32 +187,33 @@ class StereoD435:
             return render_depth(scene, K, width, height, T, max_range_m=self.max_range_m, nthreads=self.nthreads)
         return self.renderer(scene, K, width, height, T)
 
-    def _imager_rates(self, scene, T_map_i, x_cam_m, view):
+    def _imager_rates(self, scene, T_map_i, x_cam_m, view, with_irradiance=False):
         """Ambient and projector electron rates (H, W) of one imager at x_cam_m along the left x axis."""
         s = self.imager.supersample
         Ks = sample_intrinsics(self.K, s)
         z, _ = self._render(scene, Ks, self.width * s, self.height * s, T_map_i)
         z = np.ascontiguousarray(z, dtype=np.float64)
         hs, ws = z.shape
+        hit = bool(np.isfinite(z).any())
         pts, nrm = surface_geometry(z, Ks, self.nthreads)
         p = pts.reshape(-1, 3)
         n = nrm.reshape(-1, 3)
-        R, t = T_map_i[:3, :3], T_map_i[:3, 3]
-        p_map = p[:, 0:1] * R[:, 0] + p[:, 1:2] * R[:, 1] + p[:, 2:3] * R[:, 2] + t
-        n_map = n[:, 0:1] * R[:, 0] + n[:, 1:2] * R[:, 1] + n[:, 2:3] * R[:, 2]
+        p_map, n_map = to_map_frame(p, n, T_map_i, self.nthreads)
         albedo = self.materials.evaluate(p_map, n_map, self.nthreads).reshape(hs, ws)
         del p_map, n_map
         p[:, 0] += x_cam_m - self.projector.offset_m                 # camera frame -> projector frame
         e_proj = self.projector.irradiance(p, n, occlusion=view, nthreads=self.nthreads).reshape(hs, ws)
+        del pts, nrm, p, n
+        # e-/s per W/m^2 of irradiance at each sample (0 where there is no surface)
+        per_irr = signal_rate(albedo, np.ones_like(albedo), Ks, self.focal_px, self.imager)
         blur = self.imager.blur_sigma_native_px * self.focal_px / self.imager.native_focal_px
-        rate_p = integrate_samples(signal_rate(albedo, e_proj, Ks, self.focal_px, self.imager), s, blur)
-        if self.ambient_w_m2 > 0:
-            e_amb = np.where(np.isfinite(z), self.ambient_w_m2, np.nan)
-            rate_a = integrate_samples(signal_rate(albedo, e_amb, Ks, self.focal_px, self.imager), s, blur)
-        else:
-            rate_a = np.zeros_like(rate_p)
-        e_pix = np.where(np.isfinite(e_proj), e_proj, 0.0).reshape(self.height, s, self.width, s).mean(axis=(1, 3))
-        return rate_a, rate_p, e_pix, z
+        rate_p = integrate_samples(per_irr * np.nan_to_num(e_proj, nan=0.0), s, blur)
+        rate_a = integrate_samples(per_irr * self.ambient_w_m2, s, blur) if self.ambient_w_m2 > 0 \
+            else np.zeros_like(rate_p)
+        e_pix = None
+        if with_irradiance:
+            e_pix = np.nan_to_num(e_proj, nan=0.0).reshape(self.height, s, self.width, s).mean(axis=(1, 3))
+        return rate_a, rate_p, e_pix, hit
 
     def render(self, scene, T_map_cam, with_truth: bool = False) -> IRScene:
         """Noise-free electron rates of both imagers for one pose (stages 1-4 without noise).
@@ -238,11 +240,10 @@ class StereoD435:
         Kv = self.projector.view_intrinsics(wv, hv)
         zv, _ = self._render(scene, Kv, wv, hv, self.projector.pose_in_map(T))
         view = ProjectorView(np.asarray(zv, dtype=np.float64), Kv)
-        amb_l, proj_l, e_l, z_l = self._imager_rates(scene, T, 0.0, view)
-        if not np.isfinite(z_l).any():
+        amb_l, proj_l, e_l, hit = self._imager_rates(scene, T, 0.0, view, with_irradiance=True)
+        if not hit:
             raise ValueError(f"the scene has no surface in view of the left imager within max_range_m = "
                              f"{self.max_range_m} m (no ray hit anything)")
-        del z_l
         amb_r, proj_r, _, _ = self._imager_rates(scene, self.right_pose(T), self.baseline_m, view)
         z_true = None
         if with_truth:
@@ -260,7 +261,7 @@ class StereoD435:
 
     def depth(self, left, right) -> tuple[np.ndarray, MatchResult]:
         """The D4 matcher on a pair: depth (H, W) uint16 in depth units (0 = invalid) and the match."""
-        res = match(left, right, self.matcher, self.nthreads)
+        res = match(left, right, self.matcher, self.nthreads, self._workspace)
         return disparity_to_depth(res.disparity, self.focal_px, self.baseline_m, self.depth_unit_m), res
 
     def frame(self, ir: IRScene, rng: np.random.Generator) -> IRFrame:

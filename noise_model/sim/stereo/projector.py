@@ -316,7 +316,7 @@ class Projector:
         cut2 = (self.cutoff_sigmas * sigma) ** 2
         a_max, b_max = self.pattern.tangent_extent()
         reach = 1.1 * math.sqrt(cut2) * (1.0 + a_max ** 2 + b_max ** 2)
-        cell = max(2.0 * reach, 1e-6)
+        cell = max(1.1 * math.sqrt(cut2), 1e-6)          # the reach on the axis: a few cells per lookup
         a0, b0 = -a_max - reach, -b_max - reach
         n_a = int(math.ceil((2 * (a_max + reach)) / cell)) + 1
         n_b = int(math.ceil((2 * (b_max + reach)) / cell)) + 1

@@ -138,7 +138,7 @@ def _check_cost(cost) -> np.ndarray:
     return np.ascontiguousarray(C, dtype=np.uint16)
 
 
-def aggregate(cost, p1: int, p2: int, nthreads: int | None = None) -> np.ndarray:
+def aggregate(cost, p1: int, p2: int, out=None, nthreads: int | None = None) -> np.ndarray:
     """Aggregated cost S over the four paths (numba).
 
     Parameters
@@ -147,6 +147,8 @@ def aggregate(cost, p1: int, p2: int, nthreads: int | None = None) -> np.ndarray
         Matching cost C(x, y, d) in 0..COST_MAX (:func:`.census.cost_volume`).
     p1, p2 : int
         SGM penalties on the same scale.
+    out : ndarray, shape (H, W, D), uint16, optional
+        Written in place and returned (a buffer reused from frame to frame).
     nthreads : int, optional
         numba threads; the result does not depend on it.
 
@@ -157,7 +159,8 @@ def aggregate(cost, p1: int, p2: int, nthreads: int | None = None) -> np.ndarray
     """
     p1, p2 = check_penalties(p1, p2)
     C = _check_cost(cost)
-    S = np.empty(C.shape, np.uint16)
+    S = out if (out is not None and out.shape == C.shape and out.dtype == np.uint16 and out.flags.c_contiguous
+                and out is not C) else np.empty(C.shape, np.uint16)
     with threads(resolve_threads(nthreads)):
         _horizontal_kernel(C, np.int32(p1), np.int32(p2), S)
         _vertical_kernel(C, np.int32(p1), np.int32(p2), S)

@@ -69,6 +69,25 @@ def test_presets_stay_in_range(rng):
     assert abs(a.mean() - 0.22) < 0.02 and a.std() > 0.03
 
 
+def test_texture_and_map_match_their_references(rng):
+    p = rng.uniform(-2, 2, size=(3000, 3))
+    p[:1000, 2] = 0.0                                           # on the ground
+    p[10] = np.nan
+    n = rng.normal(size=(3000, 3))
+    n[20] = np.nan
+    n[30] = [0.5, 0.5, 0.5]                                     # a tie: z wins
+    for mat in (MT.concrete(), MT.carpet()):
+        np.testing.assert_allclose(mat.evaluate(p, n, nthreads=1), mat.evaluate_reference(p, n), rtol=0,
+                                   atol=1e-12, equal_nan=True)
+        np.testing.assert_array_equal(mat.evaluate(p, n, nthreads=1), mat.evaluate(p, n, nthreads=2))
+    mm = MT.MaterialMap(default=MT.carpet(), ground=MT.concrete(),
+                        regions=(((-1.0, -1.0, -1.0), (0.0, 0.0, 1.0), MT.Uniform(0.7, "box")),))
+    np.testing.assert_allclose(mm.evaluate(p, n), mm.evaluate_reference(p, n), rtol=0, atol=1e-12, equal_nan=True)
+    only = MT.MaterialMap(default=MT.concrete(), ground=None)
+    np.testing.assert_allclose(only.evaluate(p, n), only.evaluate_reference(p, n), rtol=0, atol=1e-12,
+                               equal_nan=True)
+
+
 def test_material_map_assigns_by_position():
     mm = MT.MaterialMap(default=MT.Uniform(0.8, "wall"), ground=MT.Uniform(0.3, "floor"),
                         regions=(((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), MT.Uniform(0.1, "box")),))
