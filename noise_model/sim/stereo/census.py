@@ -27,8 +27,8 @@ with H the Hamming distance of the two census words and A = |I_L(x, y) - I_R(x -
 levels. Both terms lie in 0..1023, so C is an integer in 0..2046 (:data:`COST_MAX`). The lambdas are
 the presets' ``lambdaCensus`` and ``lambdaAD``; reading them as the scales of this robust function,
 with costs on a 10-bit scale per term, is this module's interpretation (Intel documents the names and
-values, not the formula). Disparities whose right pixel falls outside the image (x - d < 0) cost
-:data:`COST_MAX`; the matcher never selects them.
+values, not the formula). A disparity whose right pixel falls outside the image (x - d < 0) has no
+cost (see below).
 
 Box averaging
 -------------
@@ -36,9 +36,12 @@ Before the semi-global aggregation the per-pixel costs are averaged over a (2 b 
 census-plus-box-aggregation of the R200 that the D400 keeps under its semi-global stage (Keselman
 et al. 2017, arXiv 1705.05548, describe 7 x 7 boxes on the R200; the matcher's default is the census
 window's 9 x 9, which brings the static, dot-layout-dependent part of the subpixel error down to the
-D435's measured plane-fit scatter, see docs/physical-d435.md). The mean keeps the 0..2046 scale, so
-the SGM penalties stay on the scale of one pixel's cost. Without it the cost curve of a single pixel
-is too coarse (integer Hamming steps) for a 1/32-px subpixel fit.
+D435's measured plane-fit scatter, see docs/physical-d435.md). The mean is taken over the window's
+pixels inside the image whose right pixel exists (x' - d >= 0), rounded to the nearest integer; where
+there is none the cost is :data:`COST_MAX` (the matcher never selects such a disparity). Averaging
+only existing costs keeps the left invalid band at f B / z instead of widening it by the box radius.
+The mean keeps the 0..2046 scale, so the SGM penalties stay on the scale of one pixel's cost. Without
+it the cost curve of a single pixel is too coarse (integer Hamming steps) for a 1/32-px subpixel fit.
 """
 
 from __future__ import annotations
@@ -252,7 +255,7 @@ def _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y, raw, o
             xr = x - d
             raw[x, d] = lut_c[popcount64(a ^ lr[xr]) + popcount64(b ^ hr[xr])] + lut_a[abs(c - ir[xr])]
         for d in range(dmax + 1, n_disp):
-            raw[x, d] = COST_MAX
+            raw[x, d] = 0                                  # no right pixel: left out of the mean
     for d in range(n_disp):
         out[0, d] = 0
     for x in range(min(box + 1, w)):
@@ -270,7 +273,7 @@ def _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y, raw, o
 
 
 @njit(parallel=True, **JIT)
-def _cost_kernel(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, out):
+def _cost_kernel(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, magic, out):
     """Box-averaged cost, in bands of rows; each band keeps a ring of the 2 box + 1 row sums it needs."""
     h, w, n_disp = out.shape
     n_ring = 2 * box + 1
@@ -294,11 +297,15 @@ def _cost_kernel(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, out):
                 acc += ring[slot]
             ny = min(h - 1, y + box) - max(0, y - box) + 1
             for x in range(w):
-                n = ny * (min(w - 1, x + box) - max(0, x - box) + 1)
-                half = np.int64(n // 2)
-                magic = np.int64(((1 << 32) + n - 1) // n)     # (v * magic) >> 32 == v // n here
+                x_lo = max(0, x - box)
+                x_hi = min(w - 1, x + box)
                 for d in range(n_disp):
-                    out[y, x, d] = ((acc[x, d] + half) * magic) >> 32
+                    nx = x_hi - max(x_lo, d) + 1           # window columns whose right pixel exists
+                    if nx <= 0:
+                        out[y, x, d] = COST_MAX
+                    else:
+                        n = ny * nx
+                        out[y, x, d] = ((acc[x, d] + (n >> 1)) * magic[n]) >> 32
 
 
 def _check_pair(left10, right10):
@@ -307,6 +314,13 @@ def _check_pair(left10, right10):
     if L.shape != R.shape or L.ndim != 2:
         raise ValueError(f"left and right images must be 2-D and the same shape, got {L.shape} and {R.shape}")
     return L, R
+
+
+def _magic(box: int) -> np.ndarray:
+    """ceil(2^32 / n) for n = 1 .. (2 box + 1)^2: (v * magic[n]) >> 32 == v // n for every v below 2^25."""
+    n = np.arange((2 * box + 1) ** 2 + 1, dtype=np.int64)
+    n[0] = 1
+    return ((np.int64(1) << 32) + n - 1) // n
 
 
 def _buffer(out, shape) -> np.ndarray:
@@ -351,7 +365,8 @@ def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: fl
     Returns
     -------
     ndarray, shape (H, W, n_disp), uint16
-        Cost in 0..:data:`COST_MAX`; per-pixel costs with x - d < 0 count as :data:`COST_MAX`.
+        Cost in 0..:data:`COST_MAX`: the mean over the window's existing per-pixel costs
+        (x' - d >= 0); :data:`COST_MAX` where the window has none.
     """
     L, R = _check_pair(left10, right10)
     b = _check_box(box_radius)
@@ -367,7 +382,7 @@ def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: fl
         lo_l, hi_l, lo_r, hi_r = census
     out = _buffer(out, L.shape + (n_disp,))
     with threads(n):
-        _cost_kernel(lo_l, hi_l, lo_r, hi_r, L, R, lut_c, lut_a, b, out)
+        _cost_kernel(lo_l, hi_l, lo_r, hi_r, L, R, lut_c, lut_a, b, _magic(b), out)
     return out
 
 
@@ -380,7 +395,7 @@ def cost_volume_reference(left10, right10, n_disp: int, radius: int = 4, lambda_
     lo_l, hi_l = census_transform_reference(L, radius)
     lo_r, hi_r = census_transform_reference(R, radius)
     h, w = L.shape
-    raw = np.full((h, w, int(n_disp)), COST_MAX, np.int64)
+    raw = np.zeros((h, w, int(n_disp)), np.int64)
     for d in range(min(int(n_disp), w)):
         ham = (np.bitwise_count(lo_l[:, d:] ^ lo_r[:, :w - d]).astype(np.int64)
                + np.bitwise_count(hi_l[:, d:] ^ hi_r[:, :w - d]))
@@ -395,5 +410,8 @@ def cost_volume_reference(left10, right10, n_disp: int, radius: int = 4, lambda_
     y = np.arange(h)
     y_lo, y_hi = np.maximum(0, y - b), np.minimum(h - 1, y + b)
     total = cs[y_hi + 1] - cs[y_lo]
-    count = ((y_hi - y_lo + 1)[:, None] * (x_hi - x_lo + 1)[None, :])[..., None]
-    return ((total + count // 2) // count).astype(np.uint16)
+    d = np.arange(int(n_disp))
+    nx = x_hi[:, None] - np.maximum(x_lo[:, None], d[None, :]) + 1          # (W, D)
+    count = (y_hi - y_lo + 1)[:, None, None] * nx[None, :, :]
+    safe = np.maximum(count, 1)
+    return np.where(count > 0, (total + safe // 2) // safe, COST_MAX).astype(np.uint16)
