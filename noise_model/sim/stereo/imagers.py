@@ -50,7 +50,7 @@ from ...numba_config import JIT, resolve_threads, threads
 
 __all__ = [
     "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
-    "signal_rate", "integrate_samples", "auto_exposure", "expose", "to_map_frame", "PLANCK_J_S", "LIGHT_M_S",
+    "signal_rate", "signal_rate_reference", "integrate_samples", "auto_exposure", "expose", "to_map_frame", "PLANCK_J_S", "LIGHT_M_S",
 ]
 
 PLANCK_J_S = 6.62607015e-34
@@ -223,13 +223,24 @@ def _rigid_kernel(pts, nrm, R, t, out_p, out_n):
             out_n[i, r] = R[r, 0] * nrm[i, 0] + R[r, 1] * nrm[i, 1] + R[r, 2] * nrm[i, 2]
 
 
-def to_map_frame(points_cam, normals_cam, T_map_cam, nthreads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Points (N, 3) and normals (N, 3) from the camera frame into the map frame: R p + t and R n (numba)."""
+def _out(buf, shape) -> np.ndarray:
+    """``buf`` if it is a C-contiguous float64 array of ``shape`` (reused from call to call), else a new one."""
+    if buf is not None and buf.shape == tuple(shape) and buf.dtype == np.float64 and buf.flags.c_contiguous:
+        return buf
+    return np.empty(shape)
+
+
+def to_map_frame(points_cam, normals_cam, T_map_cam, nthreads: int | None = None,
+                 out=(None, None)) -> tuple[np.ndarray, np.ndarray]:
+    """Points (N, 3) and normals (N, 3) from the camera frame into the map frame: R p + t and R n (numba).
+
+    ``out`` may hold two (N, 3) float64 buffers to write into.
+    """
     p = np.ascontiguousarray(points_cam, dtype=np.float64).reshape(-1, 3)
     n = np.ascontiguousarray(normals_cam, dtype=np.float64).reshape(-1, 3)
     T = np.asarray(T_map_cam, dtype=np.float64)
-    out_p = np.empty_like(p)
-    out_n = np.empty_like(n)
+    out_p = _out(out[0], p.shape)
+    out_n = _out(out[1], n.shape)
     with threads(resolve_threads(nthreads)):
         _rigid_kernel(p, n, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), out_p, out_n)
     return out_p, out_n
@@ -242,7 +253,7 @@ def _intr(K) -> np.ndarray:
     return np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
 
 
-def surface_geometry(z, K, nthreads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def surface_geometry(z, K, nthreads: int | None = None, out=(None, None)) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points and unit normals of a z-depth image (numba).
 
     Parameters
@@ -253,6 +264,8 @@ def surface_geometry(z, K, nthreads: int | None = None) -> tuple[np.ndarray, np.
         Intrinsics [px] of that image.
     nthreads : int, optional
         numba threads; the result does not depend on it.
+    out : tuple of two arrays, optional
+        (H, W, 3) float64 buffers to write into (reused from frame to frame).
 
     Returns
     -------
@@ -265,8 +278,8 @@ def surface_geometry(z, K, nthreads: int | None = None) -> tuple[np.ndarray, np.
     zz = np.ascontiguousarray(z, dtype=np.float64)
     if zz.ndim != 2:
         raise ValueError(f"z must be a 2-D depth image, got shape {zz.shape}")
-    pts = np.empty(zz.shape + (3,))
-    nrm = np.empty(zz.shape + (3,))
+    pts = _out(out[0], zz.shape + (3,))
+    nrm = _out(out[1], zz.shape + (3,))
     with threads(resolve_threads(nthreads)):
         _geometry_kernel(zz, _intr(K), pts, nrm)
     return pts, nrm
@@ -328,20 +341,53 @@ def sample_intrinsics(K, supersample: int) -> np.ndarray:
     return K
 
 
-def signal_rate(albedo, irradiance_w_m2, K_samples, focal_px: float, model: ImagerModel) -> np.ndarray:
-    """Photo-electron rate [e-/s] per pixel area at each sample (the module docstring's equation).
+@njit(parallel=True, **JIT)
+def _rate_kernel(rho, E, intr, power, k, out):
+    hs, ws = rho.shape
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    for v in prange(hs):
+        b = (v - cy) / fy
+        for u in range(ws):
+            a = (u - cx) / fx
+            r = k * rho[v, u] * E[v, u] * (1.0 + a * a + b * b) ** (-0.5 * power)
+            out[v, u] = r if r > 0.0 else 0.0                  # also 0 for NaN (no surface)
+
+
+def _rate_constant(focal_px: float, model: ImagerModel) -> float:
+    photon_j = PLANCK_J_S * LIGHT_M_S / model.wavelength_m
+    return model.quantum_efficiency * model.pixel_area_m2(focal_px) / (4.0 * model.f_number ** 2 * photon_j)
+
+
+def signal_rate(albedo, irradiance_w_m2, K_samples, focal_px: float, model: ImagerModel,
+                nthreads: int | None = None, out=None) -> np.ndarray:
+    """Photo-electron rate [e-/s] per pixel area at each sample (the module docstring's equation; numba).
 
     Parameters
     ----------
     albedo, irradiance_w_m2 : ndarray, shape (Hs, Ws)
-        Surface albedo and total irradiance at each sample; NaN (no surface) gives 0.
+        Surface albedo and total irradiance at each sample (the irradiance may be a scalar); NaN (no
+        surface) gives 0.
     K_samples : ndarray, shape (3, 3)
         Intrinsics of the sample grid (field angles).
     focal_px : float
         Focal length of the output pixels (pixel area).
     model : ImagerModel
         The imager.
+    nthreads : int, optional
+        numba threads; the result does not depend on it.
+    out : ndarray, shape (Hs, Ws), float64, optional
+        Buffer to write into.
     """
+    rho = np.ascontiguousarray(albedo, dtype=np.float64)
+    E = np.ascontiguousarray(np.broadcast_to(np.asarray(irradiance_w_m2, dtype=np.float64), rho.shape))
+    out = _out(out, rho.shape)
+    with threads(resolve_threads(nthreads)):
+        _rate_kernel(rho, E, _intr(K_samples), float(model.vignetting_power), _rate_constant(focal_px, model), out)
+    return out
+
+
+def signal_rate_reference(albedo, irradiance_w_m2, K_samples, focal_px: float, model: ImagerModel) -> np.ndarray:
+    """NumPy reference of :func:`signal_rate`."""
     rho = np.asarray(albedo, dtype=np.float64)
     E = np.asarray(irradiance_w_m2, dtype=np.float64)
     hs, ws = rho.shape
@@ -349,9 +395,7 @@ def signal_rate(albedo, irradiance_w_m2, K_samples, focal_px: float, model: Imag
     a2 = ((np.arange(ws) - cx) / fx) ** 2
     b2 = ((np.arange(hs) - cy) / fy) ** 2
     rel = (1.0 + b2[:, None] + a2[None, :]) ** (-0.5 * model.vignetting_power)
-    photon_j = PLANCK_J_S * LIGHT_M_S / model.wavelength_m
-    k = model.quantum_efficiency * model.pixel_area_m2(focal_px) / (4.0 * model.f_number ** 2 * photon_j)
-    rate = k * rho * E * rel
+    rate = _rate_constant(focal_px, model) * rho * E * rel
     return np.where(np.isfinite(rate), np.maximum(rate, 0.0), 0.0)
 
 

@@ -142,6 +142,30 @@ def _texture_kernel(p, nrm, inv_spacing, weights, table, mean, contrast, weave_k
 
 
 @njit(parallel=True, **JIT)
+def _uniform_kernel(p, value, out):
+    for i in prange(p.shape[0]):
+        out[i] = value if (np.isfinite(p[i, 0]) and np.isfinite(p[i, 1]) and np.isfinite(p[i, 2])) else np.nan
+
+
+@njit(**JIT)
+def _count_codes(code, n_codes):
+    counts = np.zeros(n_codes, np.int64)
+    for i in range(code.shape[0]):
+        if code[i] >= 0:
+            counts[code[i]] += 1
+    return counts
+
+
+@njit(parallel=True, **JIT)
+def _select_kernel(code, c, src, out):
+    for i in prange(code.shape[0]):
+        if code[i] == c:
+            out[i] = src[i]
+        elif code[i] < 0:
+            out[i] = np.nan
+
+
+@njit(parallel=True, **JIT)
 def _assign_kernel(p, lo, hi, ground_z, tol, use_ground, out):
     """Material code per point: region index, then len(lo) for the ground, len(lo) + 1 default, -1 NaN."""
     n_regions = lo.shape[0]
@@ -255,12 +279,21 @@ class Uniform:
     def __post_init__(self):
         object.__setattr__(self, "albedo", check_albedo(self.albedo, self.name))
 
-    def evaluate(self, points_map, normals_map, nthreads: int | None = None) -> np.ndarray:
-        """Albedo (N,) at surface points (N, 3) with normals (N, 3), map frame; NaN where the point is NaN."""
+    def evaluate(self, points_map, normals_map, nthreads: int | None = None, out=None) -> np.ndarray:
+        """Albedo (N,) at surface points (N, 3) with normals (N, 3), map frame; NaN where the point is NaN (numba).
+
+        ``out`` is an optional (N,) float64 buffer to write into.
+        """
+        p = np.ascontiguousarray(points_map, dtype=np.float64).reshape(-1, 3)
+        out = _out(out, len(p))
+        with threads(resolve_threads(nthreads)):
+            _uniform_kernel(p, self.albedo, out)
+        return out
+
+    def evaluate_reference(self, points_map, normals_map) -> np.ndarray:
+        """NumPy reference of :meth:`evaluate`."""
         p = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
         return np.where(np.isfinite(p).all(axis=1), self.albedo, np.nan)
-
-    evaluate_reference = evaluate
 
 
 @dataclass(frozen=True)
@@ -311,13 +344,16 @@ class Texture:
         check_albedo(self.mean * (1.0 + amp), f"{self.name} (brightest point, mean x (1 + amplitudes))")
         check_albedo(self.mean * (1.0 - amp), f"{self.name} (darkest point, mean x (1 - amplitudes))")
 
-    def evaluate(self, points_map, normals_map, nthreads: int | None = None) -> np.ndarray:
-        """Albedo (N,) at surface points (N, 3) with normals (N, 3), map frame; NaN where the point is NaN (numba)."""
+    def evaluate(self, points_map, normals_map, nthreads: int | None = None, out=None) -> np.ndarray:
+        """Albedo (N,) at surface points (N, 3) with normals (N, 3), map frame; NaN where the point is NaN (numba).
+
+        ``out`` is an optional (N,) float64 buffer to write into.
+        """
         p = np.ascontiguousarray(points_map, dtype=np.float64).reshape(-1, 3)
         n = np.ascontiguousarray(normals_map, dtype=np.float64).reshape(-1, 3)
         inv, w = _octaves(self.wavelength_m, self.octaves, self.hurst)
         k = 2.0 * np.pi / self.weave_period_m if self.weave_period_m > 0 and self.weave_contrast > 0 else 0.0
-        out = np.empty(len(p))
+        out = _out(out, len(p))
         with threads(resolve_threads(nthreads)):
             _texture_kernel(p, n, inv, w, _table(self.seed), float(self.mean), float(self.contrast), k,
                             float(self.weave_contrast), out)
@@ -391,8 +427,11 @@ class MaterialMap:
         if self.ground is not None:
             _check_material(self.ground, "ground")
 
-    def evaluate(self, points_map, normals_map, nthreads: int | None = None) -> np.ndarray:
-        """Albedo (N,) of surface points (N, 3) with normals (N, 3) [map frame]; NaN where the point is NaN."""
+    def evaluate(self, points_map, normals_map, nthreads: int | None = None, out=None, scratch=None) -> np.ndarray:
+        """Albedo (N,) of surface points (N, 3) with normals (N, 3) [map frame]; NaN where the point is NaN.
+
+        ``out`` and ``scratch`` are optional (N,) float64 buffers (reused from frame to frame).
+        """
         p = np.ascontiguousarray(points_map, dtype=np.float64).reshape(-1, 3)
         nrm = np.ascontiguousarray(normals_map, dtype=np.float64).reshape(-1, 3)
         n = resolve_threads(nthreads)
@@ -404,13 +443,17 @@ class MaterialMap:
             _assign_kernel(p, lo, hi, float(self.ground_z) if use_ground else 0.0, float(self.ground_tol_m),
                            use_ground, code)
         materials = [r[2] for r in self.regions] + [self.ground, self.default]
-        present = np.flatnonzero(np.bincount(code + 1, minlength=len(materials) + 1)[1:])
+        present = np.flatnonzero(_count_codes(code, len(materials)))
+        out = _out(out, len(p))
         if len(present) == 1:                      # one material for every surface point (NaN stays NaN)
-            return materials[present[0]].evaluate(p, nrm, n)
-        out = np.full(len(p), np.nan)
-        for c in present:                          # a few materials: evaluating all points beats gathering
-            m = code == c
-            out[m] = materials[c].evaluate(p, nrm, n)[m]
+            return materials[present[0]].evaluate(p, nrm, n, out=out)
+        if len(present) == 0:
+            out.fill(np.nan)
+            return out
+        scratch = _out(scratch, len(p))
+        with threads(n):
+            for c in present:                      # a few materials: evaluating all points beats gathering
+                _select_kernel(code, c, materials[c].evaluate(p, nrm, n, out=scratch), out)
         return out
 
     def evaluate_reference(self, points_map, normals_map) -> np.ndarray:
@@ -432,6 +475,12 @@ class MaterialMap:
         if todo.any():
             out[todo] = self.default.evaluate_reference(p[todo], nrm[todo])
         return out
+
+
+def _out(buf, n: int) -> np.ndarray:
+    if buf is not None and buf.shape == (n,) and buf.dtype == np.float64 and buf.flags.c_contiguous:
+        return buf
+    return np.empty(n)
 
 
 def _check_material(mat, where: str) -> None:

@@ -31,7 +31,7 @@ import numpy as np
 from ...numba_config import resolve_threads
 from .imagers import Exposure, ImagerModel, auto_exposure, expose, integrate_samples, sample_intrinsics, signal_rate
 from .imagers import surface_geometry, to_map_frame
-from .materials import MaterialMap, concrete, white_wall
+from .materials import MaterialMap, Texture, Uniform, concrete, white_wall
 from .matcher import MatchResult, disparity_to_depth, match, preset
 from .projector import Projector, ProjectorView
 
@@ -106,8 +106,9 @@ class StereoD435:
         Radiometry, noise and exposure of both imagers.
     matcher : str or MatcherParams
         Matcher preset ("default", "high_accuracy") or parameters.
-    materials : MaterialMap
-        Albedo of the scene's surfaces (default: white walls and boxes, concrete ground).
+    materials : MaterialMap, Uniform or Texture
+        Albedo of the scene's surfaces (default: white walls and boxes, concrete ground); one material
+        applies to every surface.
     ambient_w_m2 : float
         Uniform ambient irradiance at 850 nm on every surface [W/m^2] (0: projector only).
     shadow_scale : float
@@ -164,10 +165,13 @@ class StereoD435:
             raise ValueError(f"projector must be a Projector, got {type(self.projector).__name__}")
         if not isinstance(self.imager, ImagerModel):
             raise ValueError(f"imager must be an ImagerModel, got {type(self.imager).__name__}")
-        if not hasattr(self.materials, "evaluate"):
-            raise ValueError("materials must be a MaterialMap (or a material with evaluate)")
+        if isinstance(self.materials, (Uniform, Texture)):
+            self.materials = MaterialMap(default=self.materials, ground=None)
+        if not isinstance(self.materials, MaterialMap):
+            raise ValueError(f"materials must be a MaterialMap, Uniform or Texture, got {type(self.materials).__name__}")
         self.nthreads = resolve_threads(self.nthreads)
         self._workspace = {}                      # the matcher's volumes, reused from frame to frame
+        self._buffers = {}                        # the renderer's per-sample arrays, reused likewise
 
     # -- geometry -------------------------------------------------------------------------------
     @property
@@ -187,6 +191,13 @@ class StereoD435:
             return render_depth(scene, K, width, height, T, max_range_m=self.max_range_m, nthreads=self.nthreads)
         return self.renderer(scene, K, width, height, T)
 
+    def _buffer(self, name: str, shape) -> np.ndarray | None:
+        """A float64 buffer kept between renders (fresh memory is slow to touch), or None the first time."""
+        buf = self._buffers.get(name)
+        if buf is None or buf.shape != tuple(shape):
+            buf = self._buffers[name] = np.empty(shape)
+        return buf
+
     def _imager_rates(self, scene, T_map_i, x_cam_m, view, with_irradiance=False):
         """Ambient and projector electron rates (H, W) of one imager at x_cam_m along the left x axis."""
         s = self.imager.supersample
@@ -195,24 +206,26 @@ class StereoD435:
         z = np.ascontiguousarray(z, dtype=np.float64)
         hs, ws = z.shape
         hit = bool(np.isfinite(z).any())
-        pts, nrm = surface_geometry(z, Ks, self.nthreads)
+        pts, nrm = surface_geometry(z, Ks, self.nthreads,
+                                    out=(self._buffer("pts", (hs, ws, 3)), self._buffer("nrm", (hs, ws, 3))))
         p = pts.reshape(-1, 3)
         n = nrm.reshape(-1, 3)
-        p_map, n_map = to_map_frame(p, n, T_map_i, self.nthreads)
-        albedo = self.materials.evaluate(p_map, n_map, self.nthreads).reshape(hs, ws)
-        del p_map, n_map
+        p_map, n_map = to_map_frame(p, n, T_map_i, self.nthreads,
+                                    out=(self._buffer("p_map", p.shape), self._buffer("n_map", n.shape)))
+        albedo = self.materials.evaluate(p_map, n_map, self.nthreads, out=self._buffer("albedo", (hs * ws,)),
+                                         scratch=self._buffer("scratch", (hs * ws,))).reshape(hs, ws)
         p[:, 0] += x_cam_m - self.projector.offset_m                 # camera frame -> projector frame
-        e_proj = self.projector.irradiance(p, n, occlusion=view, nthreads=self.nthreads).reshape(hs, ws)
-        del pts, nrm, p, n
+        e_proj = self.projector.irradiance(p, n, occlusion=view, nthreads=self.nthreads,
+                                           out=self._buffer("e_proj", (hs * ws,))).reshape(hs, ws)
         # e-/s per W/m^2 of irradiance at each sample (0 where there is no surface)
-        per_irr = signal_rate(albedo, np.ones_like(albedo), Ks, self.focal_px, self.imager)
+        per_irr = signal_rate(albedo, 1.0, Ks, self.focal_px, self.imager, self.nthreads,
+                              out=self._buffer("per_irr", (hs, ws)))
         blur = self.imager.blur_sigma_native_px * self.focal_px / self.imager.native_focal_px
-        rate_p = integrate_samples(per_irr * np.nan_to_num(e_proj, nan=0.0), s, blur)
+        np.nan_to_num(e_proj, copy=False, nan=0.0)
+        e_pix = e_proj.reshape(self.height, s, self.width, s).mean(axis=(1, 3)) if with_irradiance else None
+        rate_p = integrate_samples(np.multiply(per_irr, e_proj, out=e_proj), s, blur)
         rate_a = integrate_samples(per_irr * self.ambient_w_m2, s, blur) if self.ambient_w_m2 > 0 \
             else np.zeros_like(rate_p)
-        e_pix = None
-        if with_irradiance:
-            e_pix = np.nan_to_num(e_proj, nan=0.0).reshape(self.height, s, self.width, s).mean(axis=(1, 3))
         return rate_a, rate_p, e_pix, hit
 
     def render(self, scene, T_map_cam, with_truth: bool = False) -> IRScene:

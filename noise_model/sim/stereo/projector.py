@@ -348,7 +348,8 @@ class Projector:
         return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
     # -- radiometry ------------------------------------------------------------------------------
-    def irradiance(self, points_proj, normals_proj, occlusion=None, nthreads: int | None = None) -> np.ndarray:
+    def irradiance(self, points_proj, normals_proj, occlusion=None, nthreads: int | None = None,
+                   out=None) -> np.ndarray:
         """Projector irradiance E [W/m^2] on surface points (numba).
 
         Parameters
@@ -361,6 +362,8 @@ class Projector:
             Shadows (module docstring): None lights every point facing the projector.
         nthreads : int, optional
             numba threads; the result does not depend on it.
+        out : ndarray, shape (N,), float64, optional
+            Buffer to write into (reused from frame to frame).
 
         Returns
         -------
@@ -374,7 +377,8 @@ class Projector:
         n = resolve_threads(nthreads)
         lit = _lit(pts, occlusion, n)
         t = self._tables
-        out = np.empty(len(pts))
+        if out is None or out.shape != (len(pts),) or out.dtype != np.float64 or not out.flags.c_contiguous:
+            out = np.empty(len(pts))
         with threads(n):
             _irradiance_kernel(pts, nrm, lit, t["dirs"], t["peak"], t["inv_2s2"], t["cut2"], t["floor"], t["cell"],
                                t["n_a"], t["n_b"], t["a0"], t["b0"], t["cstart"], t["corder"], out)

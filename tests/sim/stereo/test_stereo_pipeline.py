@@ -56,6 +56,12 @@ def test_thread_count_does_not_change_frames(wall_1m):
     np.testing.assert_array_equal(a.frame(ia, np.random.default_rng(3)).depth, b.frame(ib, np.random.default_rng(3)).depth)
 
 
+def test_one_material_everywhere():
+    cam = StereoD435(424, 240, materials=MT.carpet())
+    ir = cam.render(wall(1.0), T_CAM)
+    assert np.isfinite(ir.projector_left).all() and ir.projector_left.max() > 0
+
+
 def test_frames_of_a_static_camera(cam):
     d = cam.frames(wall(1.5), T_CAM, 2, 11)
     assert d.shape == (2, 240, 424) and d.dtype == np.uint16
@@ -84,5 +90,7 @@ def test_bad_input_names_it():
         StereoD435(320, 200)
     with pytest.raises(ValueError, match="preset"):
         StereoD435(424, 240, matcher="ultra")
+    with pytest.raises(ValueError, match="materials"):
+        StereoD435(424, 240, materials="carpet")
     with pytest.raises(ValueError, match="n_frames"):
         StereoD435(424, 240).frames(wall(1.0), T_CAM, 0, 1)

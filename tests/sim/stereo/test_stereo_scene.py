@@ -242,6 +242,7 @@ def test_signal_and_integration():
     E = np.full((10, 20), 0.1)
     E[0, 0] = np.nan
     r = I.signal_rate(albedo, E, K, 400.0, m)
+    np.testing.assert_allclose(r, I.signal_rate_reference(albedo, E, K, 400.0, m), rtol=1e-12, atol=0)
     assert r[0, 0] == 0.0 and np.all(r[1:] > 0)
     photon = I.PLANCK_J_S * I.LIGHT_M_S / m.wavelength_m
     centre = m.quantum_efficiency * 0.5 * 0.1 / (4 * m.f_number ** 2) * m.pixel_area_m2(400.0) / photon
