@@ -50,7 +50,8 @@ from ...numba_config import JIT, resolve_threads, threads
 
 __all__ = [
     "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
-    "signal_rate", "signal_rate_reference", "integrate_samples", "auto_exposure", "expose", "to_map_frame", "PLANCK_J_S", "LIGHT_M_S",
+    "signal_rate", "signal_rate_reference", "integrate_samples", "auto_exposure", "expose", "to_map_frame",
+    "PLANCK_J_S", "LIGHT_M_S",
 ]
 
 PLANCK_J_S = 6.62607015e-34

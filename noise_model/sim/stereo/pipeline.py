@@ -168,7 +168,8 @@ class StereoD435:
         if isinstance(self.materials, (Uniform, Texture)):
             self.materials = MaterialMap(default=self.materials, ground=None)
         if not isinstance(self.materials, MaterialMap):
-            raise ValueError(f"materials must be a MaterialMap, Uniform or Texture, got {type(self.materials).__name__}")
+            raise ValueError(f"materials must be a MaterialMap, Uniform or Texture, "
+                             f"got {type(self.materials).__name__}")
         self.nthreads = resolve_threads(self.nthreads)
         self._workspace = {}                      # the matcher's volumes, reused from frame to frame
         self._buffers = {}                        # the renderer's per-sample arrays, reused likewise
