@@ -8,6 +8,9 @@
   valid fraction (within 5 points), left band and the occlusion shadow beside an object (+- 3 px at
   the picture's 424 x 240).
 * :func:`dot_statistics` -- dots per 100 x 100 px patch and their contrast in an infrared image.
+* :func:`aims_floor` -- the concrete floor of the aims_slam recording at its geometry (640 x 480,
+  fx 383.8): the per-pixel temporal sigma per depth bin against the real one (+- 35 %) and the
+  whole-plane frame-to-frame jitter.
 
 Run ``python -m noise_model.sim.stereo.validation --realdata DIR [--json PATH]`` (DIR holds the
 ``simsense_d435_ir_pairs`` folder of real recordings; without it only the simulated figures are made).
@@ -26,7 +29,7 @@ from scipy.ndimage import label, median_filter
 
 from .pipeline import StereoD435
 
-__all__ = ["wall_scene", "wall_sweep", "real_pair", "dot_statistics", "speed", "main"]
+__all__ = ["wall_scene", "wall_sweep", "real_pair", "dot_statistics", "aims_floor", "speed", "main"]
 
 #: Targets printed next to the figures.
 TARGET_SIGMA_D_PX = (0.05, 0.12)
@@ -182,6 +185,58 @@ def dot_statistics(image, region, threshold_rel: float = 0.25, threshold_dn: flo
             "background_dn": float(np.median(B))}
 
 
+def aims_floor(folder, ambient_w_m2: float = 0.05, n_frames: int = 16, segment: str = "S1_floor") -> dict:
+    """The aims_slam floor segment simulated at its geometry, binned as its ``figures.json``.
+
+    The camera stands ``dist_m`` above a concrete floor, oriented so that the floor's normal in the
+    camera frame is the recording's fitted ``plane.normal`` (its pitch and roll); the image is
+    640 x 480 with fx = fy = 383.8, (321.7, 238.2). Per depth bin of the segment: the median over
+    pixels of the ROI valid in >= 90 % of the frames of their temporal standard deviation.
+    """
+    from .. import Scene
+    from .materials import MaterialMap, concrete
+
+    fig = json.loads((Path(folder) / "figures.json").read_text())
+    seg = fig[segment]
+    intr = fig["intrinsics_estimate_640x480"]
+    K = np.array([[intr["fx"], 0.0, intr["ppx"]], [0.0, intr["fy"], intr["ppy"]], [0.0, 0.0, 1.0]])
+    up = np.asarray(seg["plane"]["normal"], dtype=np.float64)
+    up /= np.linalg.norm(up)
+    axis = np.array([0.0, 0.0, 1.0])
+    x_map = axis - (axis @ up) * up
+    x_map /= np.linalg.norm(x_map)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x_map, np.cross(up, x_map), up]).T
+    T[2, 3] = seg["plane"]["dist_m"]
+    cam = StereoD435(640, 480, K=K, materials=MaterialMap(default=concrete(), ground=concrete()),
+                     ambient_w_m2=ambient_w_m2)
+    ir = cam.render(Scene([], ground_z=0.0), T, with_truth=True)
+    rng = np.random.default_rng(0)
+    D = np.stack([cam.frame(ir, rng).depth for _ in range(n_frames)]).astype(np.float64) * cam.depth_unit_m
+    x0, y0, x1, y1 = seg["roi_xyxy"]
+    roi = np.zeros(D.shape[1:], bool)
+    roi[y0:y1, x0:x1] = True
+    ok = ((D > 0).mean(axis=0) >= 0.9) & roi
+    Dv = np.where(D > 0, D, np.nan)
+    sd = np.full(D.shape[1:], np.nan)
+    sd[ok] = np.nanstd(Dv[:, ok], axis=0, ddof=1)
+    fB = cam.focal_px * cam.baseline_m
+    bins = []
+    for b in seg["plane_temporal_bins"]:
+        lo, hi = b["z_m"]
+        m = ok & (ir.z_true >= lo) & (ir.z_true < hi)
+        sim = float(np.nanmedian(sd[m])) * 1e3 if m.any() else float("nan")
+        zm = float(np.median(ir.z_true[m])) if m.any() else float("nan")
+        bins.append({"z_m": [lo, hi], "incidence_deg": b["median_local_incidence_deg"],
+                     "real_mm": b["median_temporal_std_mm"], "sim_mm": sim,
+                     "ratio": sim / b["median_temporal_std_mm"],
+                     "real_sigma_d_px": b["implied_subpixel_px"], "sim_sigma_d_px": sim * 1e-3 * fB / zm ** 2})
+    offsets = [float(np.nanmean(np.where(roi, Dv[k] - ir.z_true, np.nan))) for k in range(n_frames)]
+    return {"segment": segment, "ambient_w_m2": ambient_w_m2, "bins": bins,
+            "plane_jitter_sim_mm": float(np.std(offsets, ddof=1)) * 1e3,
+            "plane_jitter_real_mm": seg["plane_offset_frame_to_frame_std_mm"]}
+
+
 def speed(width: int, height: int, repeats: int = 3) -> dict:
     """Milliseconds per frame of a camera pitched 30 deg down over a floor with a box: render and match."""
     from .. import Box, Scene
@@ -207,7 +262,8 @@ def speed(width: int, height: int, repeats: int = 3) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--realdata", type=Path, help="folder holding simsense_d435_ir_pairs")
+    ap.add_argument("--realdata", type=Path,
+                    help="folder holding simsense_d435_ir_pairs and aims_slam_d435_robot_floor")
     ap.add_argument("--json", type=Path, help="write the figures here")
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--no-speed", action="store_true")
@@ -235,6 +291,15 @@ def main(argv=None) -> int:
             ("box_front", np.s_[270:330, 200:380]), ("book", np.s_[200:300, 480:580]))}
         for k, v in out["real_dots"].items():
             print(f"  real dots {k}: {v['dots_per_100x100']:.0f} per 100x100, contrast {v['contrast_median']:.2f}")
+    aims = args.realdata / "aims_slam_d435_robot_floor" if args.realdata else None
+    if aims is not None and aims.is_dir():
+        out["aims_floor"] = af = aims_floor(aims)
+        print(f"aims_slam floor ({af['ambient_w_m2']} W/m^2 ambient), temporal sigma per depth bin, target +-35 %:")
+        for b in af["bins"]:
+            print(f"  z {b['z_m'][0]:.2f}-{b['z_m'][1]:.2f} m ({b['incidence_deg']:.0f} deg): sim {b['sim_mm']:.2f} mm "
+                  f"vs real {b['real_mm']:.2f} mm (x{b['ratio']:.2f}); sigma_d {b['sim_sigma_d_px']:.3f} vs "
+                  f"{b['real_sigma_d_px']:.3f} px")
+        print(f"  whole-plane jitter {af['plane_jitter_sim_mm']:.2f} mm vs real {af['plane_jitter_real_mm']:.2f} mm")
     if not args.no_speed:
         out["speed"] = [speed(424, 240), speed(848, 480)]
         for s in out["speed"]:
