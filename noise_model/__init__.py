@@ -44,7 +44,7 @@ _LAZY = {
     "alternatives": ("noise_model.alternatives", None),
     "sim": ("noise_model.sim", None),
     "effects": ("noise_model.sim.effects", None),
-    "scene": ("noise_model.sim.scene", None),
+    "scene": ("noise_model.sim", None),
     "analysis": ("noise_model.analysis", None),
     "EFFECTS": ("noise_model.sim.effects", "EFFECTS"),
     "correlated_noise": ("noise_model.sim.effects", "correlated_noise"),

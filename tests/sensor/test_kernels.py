@@ -247,7 +247,7 @@ def test_points_in_windows_of_two_surfaces_are_calibrated_beyond_two_metres():
     distance from their surface's median as a variance floor it is 0.95-0.98. Asserted: the depth
     z-scores of mixed-window pixels whose true depth is beyond 2 m cover 2 sigma at least 0.93 (and
     not all but surely: at most 0.995)."""
-    from noise_model.sim.scene import DEFAULT_T_BASE_CAM, Scene, add_noise, render_depth, walk
+    from noise_model.sim import DEFAULT_T_BASE_CAM, Scene, add_noise, render_depth, walk
     rng = np.random.default_rng(3)
     W, H = 424, 240
     K = D435.intrinsics(W, H)
