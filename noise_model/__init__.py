@@ -15,7 +15,7 @@ point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
 depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
 Scene, render_depth, add_noise          scenes of primitives, numba ray casting, the reference noise
-walk, odometry_drift, simulate_walk     trajectories, odometry drift, simulated walks (noise_model.sim.scene)
+walk, odometry_drift, simulate_walk     trajectories, odometry drift, simulated walks (noise_model.sim.walks)
 alternatives                            other point-noise models for comparisons: constant, quadratic
                                         (elevation_mapping_cupy), anybotics_d435 (ANYbotics' D435 preset)
 effects, correlated_noise, depth_bias   depth effects for the simulator's effects hook (EFFECTS by name)

@@ -155,7 +155,7 @@ class _AnyboticsD435(VarianceModel):
             # ANYbotics: J_q = P C_BM^T ([C_SB^T S_r_SP]_x + [B_r_BS]_x), the lever arm from the base
             # origin, on the base's rotation covariance. Our pose covariance is the camera's, its rotation
             # a map-frame rotation vector about the camera centre (the base rotation's swing of the camera
-            # is already in its translation block, see noise_model.sim.scene.camera_pose_cov), so the same
+            # is already in its translation block, see noise_model.sim.walks.camera_pose_cov), so the same
             # term is J = -[R p_cam]_x on pose_cov[3:, 3:]. The translation block is left out, as
             # ANYbotics does (it enters the map as process noise in the motion update).
             S = skew(p @ R.T)                          # (N, 3, 3), [q]_x with q = R p_cam

@@ -262,10 +262,6 @@ def axial_sigma_unchecked(z, theta, model: SensorModel = D435):
     return sigma_z_from_gain(z, angle_gain(t, ct), c0, c1, c2)
 
 
-#: The former private name, still imported by the simulator and the analysis.
-_axial_sigma_unchecked = axial_sigma_unchecked
-
-
 def _gh_rule(k: int):
     x, w = np.polynomial.hermite_e.hermegauss(k)
     return tuple(float(v) for v in x), tuple(float(v) for v in w / w.sum())

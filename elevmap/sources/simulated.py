@@ -48,7 +48,7 @@ class SimulatedWalk:
     drift : bool
         Odometry drift: the poses reported are drifted, with their covariance.
     effects : sequence of callables, optional
-        Extra depth effects (see :func:`noise_model.sim.scene.add_noise`).
+        Extra depth effects (see :func:`noise_model.sim.add_noise`).
     path : (K, 2) array_like, optional
         Waypoints [m]; by default a straight walk through the scene along +x.
     """

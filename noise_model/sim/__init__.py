@@ -16,6 +16,8 @@ modules, in the order a frame is made:
   the one reference simulation of a planar target (:func:`simulate_target`, and
   :func:`simulate_target_frames` for a target given by its parameters).
 * :mod:`.effects` -- depth effects the reference simulation leaves out, applied by the effects hook.
+* :mod:`.stereo` -- the physical D435: projector dot pattern, infrared pair, census + semi-global
+  matching; its noise emerges instead of being prescribed (docs/physical-d435.md). Imported on demand.
 """
 
 from .noise import add_noise

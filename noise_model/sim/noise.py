@@ -32,7 +32,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..checks import check_positive_scalar
-from ..d435 import D435, SensorModel, _axial_sigma_unchecked
+from ..d435 import D435, SensorModel, axial_sigma_unchecked
 from ._checks import _rng
 
 __all__ = ["add_noise"]
@@ -103,7 +103,7 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
         z = z_t.copy()
     else:
         sigma = np.zeros_like(z_t)
-        sigma[hit] = _axial_sigma_unchecked(zh, th[hit], model)
+        sigma[hit] = axial_sigma_unchecked(zh, th[hit], model)
         z = z_t + rng.normal(0.0, 1.0, z_t.shape) * sigma
     if effects:
         if context is not None and not isinstance(context, dict):

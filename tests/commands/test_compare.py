@@ -387,7 +387,7 @@ def test_sim_effects_from_a_gap_report(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------
-# issue 5's must-show, on the default walks (seed 0, 60 frames, 424x240; README "Calibration")
+# the calibration must-show on the default walks (seed 0, 60 frames, 424x240; docs/calibration.md)
 # ---------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("scene", ["stairs", "boxes"])
 def test_with_reality_equal_to_the_model_the_paper_mapper_is_calibrated_and_best(scene):

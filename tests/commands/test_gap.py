@@ -312,7 +312,7 @@ def test_split_and_effect_arguments():
 
 
 # ---------------------------------------------------------------------------------------------
-# the selftest of the issue
+# the self-test: every effect found and fitted
 # ---------------------------------------------------------------------------------------------
 def test_selftest_finds_every_effect_blind():
     """Every effect of the library, at random hidden parameters, is ranked first, recovered within its

@@ -15,6 +15,7 @@ from scipy.optimize import least_squares, minimize_scalar, nnls
 from scipy.special import ndtr
 
 from ...d435 import axial_sigma_unchecked
+from ...formulas import angle_gain
 from ._common import (
     _MAX_SAMPLE_PX, _base_sims, _disp_sigma, _nominal, _pixels, _plane_residual, _robust_mean_square,
     _robust_temporal_var, _roi, _sample_mask, _temporal_min_count,
@@ -206,7 +207,7 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
             if (y2 <= 0 or math.sqrt(y2) > 0.15 * float(np.mean(zz))
                     or float(np.max(sref[sel])) > 0.15 * float(np.min(zz))):
                 continue
-            gth = zz * np.sqrt(zz) * tt / (0.5 * np.pi - tt) ** 2
+            gth = zz * np.sqrt(zz) * angle_gain(tt, 1.0)   # the regressor of the angle coefficient
             bins.append(np.column_stack([np.ones_like(zz), zz, zz * zz, gth]))
             ys.append(y2)
             sds.append(math.sqrt(2.0 * (v_r ** 2 + v_b ** 2) / (sel.sum() * max(dof, 1))) / f)
