@@ -14,7 +14,6 @@ import json
 import sys
 import textwrap
 
-from .fileio import check_outputs
 
 __all__ = ["main", "build_parser"]
 
@@ -208,11 +207,19 @@ def _open_hint(path) -> str:
     return f"open it with: rerun {path}"
 
 
+def _check_outputs(*args, **kwargs):
+    """:func:`elevmap.fileio.check_outputs`, imported when a command runs (it loads the model and numba,
+    which ``elevmap --help`` does not need)."""
+    from .fileio import check_outputs
+
+    return check_outputs(*args, **kwargs)
+
+
 def _cmd_demo(args) -> int:
     if args.noise_model:
         from .commands.demo import run_noise_demo
 
-        check_outputs({"--rrd": args.rrd}, overwrite=True)         # the demo replaces its own file
+        _check_outputs({"--rrd": args.rrd}, overwrite=True)         # the demo replaces its own file
         summary = run_noise_demo(args.rrd, seed=args.seed, show_progress=not args.no_progress)
         print(json.dumps(summary, indent=2))
         print(f"wrote {args.rrd}; {_open_hint(args.rrd)}")
@@ -270,7 +277,7 @@ def _cmd_run(args) -> int:
     if args.command == "replay" and not str(args.source).lower().endswith(".rrd"):
         raise ValueError(f"{args.source}: replay takes a rerun recording (.rrd); use `elevmap run` for others")
     config = _load_config(args.config)
-    check_outputs({"--rrd": args.rrd, "--json": args.json}, args.overwrite, inputs=[args.source])
+    _check_outputs({"--rrd": args.rrd, "--json": args.json}, args.overwrite, inputs=[args.source])
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     src = open_source(args.source, poses=args.poses, intrinsics=args.intrinsics, frames=args.frames,
@@ -293,7 +300,7 @@ def _cmd_bench(args) -> int:
 
     if args.frames < 1 or args.reference_frames < 1:
         raise ValueError("--frames and --reference-frames must be >= 1")
-    check_outputs({"--json": args.json}, overwrite=True)            # bench replaces its report
+    _check_outputs({"--json": args.json}, overwrite=True)            # bench replaces its report
     groups = GROUPS if args.only is None else tuple(g.strip() for g in args.only.split(",") if g.strip())
     report = run_bench(args.frames, args.reference_frames, args.threads, show_progress=not args.no_progress,
                        groups=groups)
@@ -328,7 +335,7 @@ def _cmd_simulate(args) -> int:
 
     if not args.rrd:
         raise ValueError("--walk needs --rrd PATH")
-    check_outputs({"--rrd": args.rrd}, args.overwrite)
+    _check_outputs({"--rrd": args.rrd}, args.overwrite)
     src = SimulatedWalk(args.walk, n_frames=args.frames, seed=args.seed, width=width, height=height,
                         drift=args.drift)
     summary = run_mapping(src, MappingConfig(), rrd_path=args.rrd, total=len(src),
@@ -344,7 +351,7 @@ def _cmd_compare(args) -> int:
 
     if not args.json:
         raise ValueError("--json PATH is required (the report)")
-    check_outputs({"--json": args.json, "--rrd": args.rrd}, args.overwrite)
+    _check_outputs({"--json": args.json, "--rrd": args.rrd}, args.overwrite)
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     try:

@@ -6,13 +6,12 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-import numpy as np
+from noise_model.reporting import json_ready
 
 __all__ = ["check_outputs", "atomic_output", "write_json_atomic", "json_ready", "new_file_mode"]
 
@@ -127,24 +126,3 @@ def write_json_atomic(path, obj) -> None:
     """Write ``obj`` as indented JSON to ``path`` atomically."""
     with atomic_output(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=2) + "\n")
-
-
-def json_ready(obj):
-    """Strict-JSON copy of a report: NaN/inf -> None, NumPy scalars and arrays -> Python numbers and
-    lists, tuples -> lists, paths -> str, dict keys -> str."""
-    if isinstance(obj, dict):
-        return {str(k): json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return json_ready(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj

@@ -73,9 +73,9 @@ import numpy as np
 
 from noise_model.alternatives import make_variance_model
 from noise_model.checks import check_positive_scalar
+from noise_model.reporting import check_names
 from noise_model.sim.effects import EFFECTS, Effect, make_effect
 
-from .args import check_names
 from ..map.elevation_map import ElevationMap
 from ..frame import Frame
 from ..fileio import check_outputs, json_ready

@@ -83,7 +83,7 @@ def test_elevmap_core_imports_no_realsense():
 
 
 def test_name_lists_of_the_options_name_the_problem():
-    from elevmap.commands.args import check_names
+    from noise_model.reporting import check_names
 
     assert check_names(" a, b ", "--x", ["a", "b", "c"]) == ["a", "b"]
     assert check_names(["c"], "--x", ["a", "b", "c"]) == ["c"]

@@ -33,11 +33,11 @@ import math
 import time
 import zlib
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 import numpy as np
 
 from ...d435 import D435, SensorModel
+from ...reporting import check_names, json_ready
 from ...sim.effects import EFFECTS, ORDER, canonical_order, draw_params, make_effect
 from ..capture_data import CaptureData, CaptureGeometry, check_captures, simulate_capture
 from ..effect_fits import NEEDS, fit_effect, usable_captures, within_tolerance
@@ -62,39 +62,12 @@ SELFTEST_PAIR = ("invalid_band", "correlated_noise")
 # ---------------------------------------------------------------------------------------------
 # arguments and the held-out split
 # ---------------------------------------------------------------------------------------------
-def _names(spec, option: str, allowed, what: str) -> list[str]:
-    """Distinct names of ``allowed`` from a comma-separated string or a sequence of strings.
-
-    ``option`` and ``what`` name the argument and one name in messages (``--heldout``, "capture").
-
-    Raises
-    ------
-    ValueError
-        An empty entry, an unknown name, a name given twice, or neither a string nor a sequence.
-    """
-    if isinstance(spec, str):
-        names = [s.strip() for s in spec.split(",")]
-    else:
-        try:
-            names = [str(s).strip() for s in spec]
-        except TypeError:
-            raise ValueError(f"{option} must be comma-separated {what}s or a list of them, got {spec!r}") from None
-    if not names or any(not n for n in names):
-        raise ValueError(f"{option} {spec!r}: give comma-separated {what}s of {', '.join(allowed)}")
-    for n in names:
-        if n not in allowed:
-            raise ValueError(f"unknown {what} {n!r}; {what}s: {', '.join(allowed)}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"{option} {spec!r} names a {what} twice")
-    return names
-
-
 def parse_effect_names(effects) -> list[str]:
     """Candidate effect names: None / ``"all"`` = every effect of the library (canonical order), else a
     comma-separated string or a sequence of names of :data:`noise_model.sim.effects.EFFECTS`."""
     if effects is None or (isinstance(effects, str) and effects.strip().lower() in ("", "all")):
         return list(ORDER) + [n for n in EFFECTS if n not in ORDER]
-    return _names(effects, "--effects", list(EFFECTS), "effect")
+    return check_names(effects, "--effects", list(EFFECTS), "effect")
 
 
 def _incidence_deg(target: dict) -> float:
@@ -174,7 +147,7 @@ def split_captures(geometries: Sequence[CaptureGeometry], heldout="auto", distan
     elif isinstance(heldout, str) and heldout.strip().lower() in ("", "none"):
         held, rule = [], "none"
     else:
-        held = _names(heldout, "--heldout", ids, "capture")
+        held = check_names(heldout, "--heldout", ids, "capture")
         rule = "given: " + ", ".join(held)
     hs = set(held)
     fit = [i for i in ids if i not in hs]
@@ -250,27 +223,6 @@ def gap_capture_of(data: CaptureData | CaptureGeometry, model: SensorModel = D43
 # ---------------------------------------------------------------------------------------------
 # the diagnosis
 # ---------------------------------------------------------------------------------------------
-def _json_ready(obj):
-    """Strict-JSON copy of a report: NaN/inf -> None, NumPy scalars and arrays -> Python numbers and
-    lists, tuples -> lists, paths -> str, dict keys -> str (as ``elevmap.fileio.json_ready``)."""
-    if isinstance(obj, dict):
-        return {str(k): _json_ready(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_ready(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _json_ready(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def _where(entries: list, limit: int = MAX_WHERE, pad: int = 20) -> list:
     """The ``where`` entries worth reporting: those with a gap (at least ``pad``, ranked), at most ``limit``."""
     pos = [e for e in entries if e["gap"] > 0]
@@ -373,7 +325,7 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
     })
     if "frames_cut" in r:
         report["frames_cut"] = r["frames_cut"]
-    return _json_ready(report), res
+    return json_ready(report), res
 
 
 # ---------------------------------------------------------------------------------------------
@@ -495,7 +447,7 @@ def selftest_case(case: dict, seed: int, n_frames: int, width: int, height: int,
         checks["shrink_heldout_ge_0.6"] = row["shrink_heldout"] >= 0.6
     row["checks"] = checks
     row["passed"] = all(checks.values())
-    return _json_ready(row)
+    return json_ready(row)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,8 +1,38 @@
-"""Command-line option parsing shared by the subcommands (lists of names such as ``--mappers``)."""
+"""What the analysis and the commands' reports share: strict-JSON copies and lists of names.
+
+``noise_model`` cannot import ``elevmap``, so the helpers that both the library half of a diagnosis
+(:mod:`noise_model.analysis.diagnosis`) and the commands (``elevmap.commands``) need live here.
+"""
 
 from __future__ import annotations
 
-__all__ = ["check_names"]
+import math
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["json_ready", "check_names"]
+
+
+def json_ready(obj):
+    """Strict-JSON copy of a report: NaN/inf -> None, NumPy scalars and arrays -> Python numbers and
+    lists, tuples -> lists, paths -> str, dict keys -> str."""
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
 
 
 def check_names(spec, option: str, allowed=None, what: str = "name") -> list[str]:
