@@ -14,6 +14,11 @@ every cell the ray's segment can touch, by brute force). Per primitive, a conser
 (its bounding box projected) limits the pixels tested. Rules:
 
 * theta is the angle between the hit face's normal and the optical axis, in [0, pi/2].
+* With ``return_index=True`` each pixel also names what it hit (the key by which the physical D435
+  of :mod:`noise_model.sim.stereo` gives each primitive its own material): k >= 0 is
+  ``scene.primitives[k]``, :data:`HIT_GROUND` (-1) the ground plane, :data:`HIT_NONE` (-2) no hit
+  (z NaN: nothing within range, or the camera is blinded). The index follows the same tie rule as
+  the depth.
 * Hits with z > ``max_range_m`` are no data (NaN). Exact ties between primitives go to the first in
   the order ground, box-like primitives (in the scene's order), height fields.
 * A camera inside a solid (below the ground, inside a box/step/ramp, under a height field's surface,
@@ -38,9 +43,12 @@ from ..numba_config import JIT, resolve_threads, threads
 from ._checks import _LIMIT_M, _image_size
 from .scene import _RAMP, HF_BLOCK, HeightField, Scene, Stairs
 
-__all__ = ["render_depth", "render_depth_reference"]
+__all__ = ["render_depth", "render_depth_reference", "HIT_GROUND", "HIT_NONE"]
 
-
+#: Primitive index of a pixel that hit the ground plane (``return_index=True``).
+HIT_GROUND = -1
+#: Primitive index of a pixel that hit nothing (``return_index=True``; its z is NaN).
+HIT_NONE = -2
 
 # ---------------------------------------------------------------------------------------------
 # numba ray casting
@@ -293,9 +301,11 @@ def _field_hit(hv, cm, bm, nx, ny, oh, oc, ob, nbx, nby, x0, y0, res, base, hmax
 
 @njit(parallel=True, **JIT)
 def _render_kernel(intr, T, rows, ground, kinds, pf, ptab, prect, hfi, hff, hftab, hfrect, hv, cm, bm,
-                   max_range, z_out, th_out):
+                   max_range, z_out, th_out, pidx, hfidx, want_idx, idx_out):
     """Fill z_out, th_out (H, W) row by row (rows[ii] is the ii-th row computed: interleaved so that
-    numba's contiguous split of the prange gives each thread rows from all over the image)."""
+    numba's contiguous split of the prange gives each thread rows from all over the image); with
+    ``want_idx`` also idx_out (H, W): the scene index of what each pixel hit (pidx[k] of box-like
+    primitive k, hfidx[k] of height field k), HIT_GROUND or HIT_NONE."""
     H, W = z_out.shape
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     R00, R01, R02 = T[0, 0], T[0, 1], T[0, 2]
@@ -342,9 +352,11 @@ def _render_kernel(intr, T, rows, ground, kinds, pf, ptab, prect, hfi, hff, hfta
             dz = R20 * up + b2
             best = inf
             bth = nan
+            bidx = -2
             if has_ground and dz < 0.0:
                 best = (gz - oz) / dz
                 bth = gth
+                bidx = -1
             lim = min(best, max_range)
             for m in range(na):
                 k = act[m]
@@ -358,6 +370,7 @@ def _render_kernel(intr, T, rows, ground, kinds, pf, ptab, prect, hfi, hff, hfta
                 if t < best:
                     best = t
                     bth = ptab[k, face] if face >= 0 else nan
+                    bidx = pidx[k]
                     lim = min(best, max_range)
             for m in range(nha):
                 k = hact[m]
@@ -369,6 +382,7 @@ def _render_kernel(intr, T, rows, ground, kinds, pf, ptab, prect, hfi, hff, hfta
                 if t < best:
                     best = t
                     bth = th
+                    bidx = hfidx[k]
                     lim = min(best, max_range)
             if best > 0.0 and best <= max_range:
                 z_out[v, u] = best
@@ -376,6 +390,9 @@ def _render_kernel(intr, T, rows, ground, kinds, pf, ptab, prect, hfi, hff, hfta
             else:
                 z_out[v, u] = nan
                 th_out[v, u] = nan
+                bidx = -2
+            if want_idx:
+                idx_out[v, u] = bidx
 
 
 # ---------------------------------------------------------------------------------------------
@@ -437,12 +454,13 @@ def _prepare_render(scene, K, width, height, T_map_cam, max_range_m):
     return K, width, height, T, max_range, inside
 
 
-def _blinded(width, height):
-    return np.full((height, width), np.nan), np.full((height, width), np.nan)
+def _blinded(width, height, return_index):
+    out = np.full((height, width), np.nan), np.full((height, width), np.nan)
+    return out + (np.full((height, width), HIT_NONE, dtype=np.int32),) if return_index else out
 
 
 def render_depth(scene: Scene, K, width: int, height: int, T_map_cam, max_range_m: float = 10.0,
-                 nthreads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 nthreads: int | None = None, return_index: bool = False) -> tuple[np.ndarray, ...]:
     """Noise-free z-depth and incidence angle of a scene seen by a pinhole camera (numba).
 
     Parameters
@@ -459,6 +477,8 @@ def render_depth(scene: Scene, K, width: int, height: int, T_map_cam, max_range_
         Hits farther than this z-depth are no data [m].
     nthreads : int, optional
         numba threads (numba's current setting by default); the result does not depend on it.
+    return_index : bool
+        Also return what each pixel hit.
 
     Returns
     -------
@@ -468,11 +488,14 @@ def render_depth(scene: Scene, K, width: int, height: int, T_map_cam, max_range_
     theta : ndarray, shape (height, width), float64
         Angle between the hit surface's normal and the optical axis [rad], in [0, pi/2]; NaN where
         z_true is NaN.
+    index : ndarray, shape (height, width), int32
+        Only with ``return_index``: k >= 0 for ``scene.primitives[k]``, :data:`HIT_GROUND` (-1) for the
+        ground plane, :data:`HIT_NONE` (-2) where z_true is NaN.
     """
     K, width, height, T, max_range, inside = _prepare_render(scene, K, width, height, T_map_cam, max_range_m)
     n = resolve_threads(nthreads)
     if inside:
-        return _blinded(width, height)
+        return _blinded(width, height, return_index)
     pk = scene.packed
     axis = T[:3, 2]
     ptab = np.zeros((len(pk.pf), 7))
@@ -487,10 +510,11 @@ def render_depth(scene: Scene, K, width: int, height: int, T_map_cam, max_range_
     intr = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
     z = np.empty((height, width))
     th = np.empty((height, width))
+    idx = np.empty((height, width) if return_index else (1, 1), dtype=np.int32)
     with threads(n):
         _render_kernel(intr, T, rows, ground, pk.kinds, pk.pf, ptab, prect, pk.hfi, pk.hff, hftab, hfrect,
-                       pk.hv, pk.cm, pk.bm, max_range, z, th)
-    return z, th
+                       pk.hv, pk.cm, pk.bm, max_range, z, th, pk.box_index, pk.field_index, bool(return_index), idx)
+    return (z, th, idx) if return_index else (z, th)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -622,7 +646,7 @@ def _field_reference(f: HeightField, o, d, max_range):
 
 
 def render_depth_reference(scene: Scene, K, width: int, height: int, T_map_cam,
-                           max_range_m: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+                           max_range_m: float = 10.0, return_index: bool = False) -> tuple[np.ndarray, ...]:
     """NumPy reference of :func:`render_depth` (slow; same arguments and results).
 
     Independent of the kernel's traversals: stairs are rendered as their steps (one box each) and
@@ -631,7 +655,7 @@ def render_depth_reference(scene: Scene, K, width: int, height: int, T_map_cam,
     """
     K, width, height, T, max_range, inside = _prepare_render(scene, K, width, height, T_map_cam, max_range_m)
     if inside:
-        return _blinded(width, height)
+        return _blinded(width, height, return_index)
     R, o = T[:3, :3], T[:3, 3]
     u = (np.arange(width) - K[0, 2]) / K[0, 0]
     v = (np.arange(height) - K[1, 2]) / K[1, 1]
@@ -640,17 +664,19 @@ def render_depth_reference(scene: Scene, K, width: int, height: int, T_map_cam,
     N = d.shape[0]
     best = np.full(N, np.inf)
     normal = np.full((N, 3), np.nan)
+    index = np.full(N, HIT_NONE, dtype=np.int32)
 
-    def update(t, nrm):
+    def update(t, nrm, k):
         better = t < best
         best[better] = t[better]
         normal[better] = nrm[better] if nrm.ndim == 2 else nrm
+        index[better] = k
 
     if scene.ground_z is not None:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.where(d[:, 2] < 0, (scene.ground_z - o[2]) / d[:, 2], np.inf)
-        update(t, np.array([0.0, 0.0, 1.0]))
-    for p in scene.primitives:
+        update(t, np.array([0.0, 0.0, 1.0]), HIT_GROUND)
+    for k, p in enumerate(scene.primitives):
         if isinstance(p, HeightField):
             continue
         boxes = p.steps() if isinstance(p, Stairs) else [p]
@@ -675,13 +701,15 @@ def render_depth_reference(scene: Scene, K, width: int, height: int, T_map_cam,
             hit = (tn <= tf) & (tf >= 0)
             t = np.where(hit, np.maximum(tn, 0.0), np.inf)
             nrm = _yawed_normals(c, s, extra[0] if kind == _RAMP else 0.0)[face]
-            update(t, nrm)
-    for f in scene.primitives:
+            update(t, nrm, k)
+    for k, f in enumerate(scene.primitives):
         if isinstance(f, HeightField):
             t, nrm = _field_reference(f, o, d, max_range)
-            update(t, nrm)
+            update(t, nrm, k)
     ok = (best > 0) & (best <= max_range)
     z = np.where(ok, best, np.nan).reshape(height, width)
     theta = np.where(ok, _theta_of(np.nan_to_num(normal), R[:, 2]), np.nan).reshape(height, width)
+    if return_index:
+        return z, theta, np.where(ok, index, HIT_NONE).astype(np.int32).reshape(height, width)
     return z, theta
 

@@ -24,6 +24,16 @@ Primitives (all solids are closed sets; the first hit along a ray is its smalles
 * :class:`Target`: a vertical rectangle of zero thickness (a board), two-sided, facing ``yaw_deg``.
   It has no footprint, so ``height_at`` ignores it.
 
+Materials
+---------
+Every primitive takes an optional infrared ``material`` and the scene a ``ground_material``: a
+``Uniform`` or ``Texture`` of :mod:`noise_model.sim.stereo.materials`, or a number, read as a uniform
+albedo (Lambertian reflectance at the projector's 850 nm, in [0, 1]; anything else is a ValueError
+naming the primitive). Only the physical D435 (:mod:`noise_model.sim.stereo`) reads them, through the
+renderer's primitive index (``render_depth(..., return_index=True)``); None (the default) leaves a
+surface to that camera's own :class:`~noise_model.sim.stereo.materials.MaterialMap` (white walls and
+boxes, a concrete ground unless it is told otherwise). The reference simulation ignores materials.
+
 Ground truth
 ------------
 :meth:`Scene.height_at` is the highest top surface of any primitive over a point (footprints are
@@ -54,6 +64,15 @@ HF_BLOCK = 8
 _BOX, _STAIRS, _RAMP = 0, 1, 2
 
 
+def _material(value, where: str):
+    """None, or the infrared material ``value`` (a number is a uniform albedo in [0, 1]); else ValueError."""
+    if value is None:
+        return None
+    from .stereo.materials import as_material      # the stereo package loads only when a material is given
+
+    return as_material(value, where)
+
+
 # ---------------------------------------------------------------------------------------------
 # primitives
 # ---------------------------------------------------------------------------------------------
@@ -69,13 +88,17 @@ class Box:
         Edge lengths along its own x, y (yawed) and map z [m], all > 0.
     yaw_deg : float
         Rotation about map z [deg].
+    material : Uniform, Texture, float or None
+        Infrared material of its faces (module docstring).
     """
 
     centre: tuple
     size: tuple
     yaw_deg: float = 0.0
+    material: object = None
 
     def __post_init__(self):
+        object.__setattr__(self, "material", _material(self.material, "Box.material"))
         c = _vector(self.centre, (3,), "Box.centre")
         s = _vector(self.size, (3,), "Box.size")
         if np.any(s <= 0):
@@ -105,6 +128,8 @@ class Stairs:
         Number of steps, >= 1.
     width : float
         Width of the flight [m], > 0.
+    material : Uniform, Texture, float or None
+        Infrared material of the steps (module docstring).
     """
 
     start: tuple
@@ -113,8 +138,10 @@ class Stairs:
     run: float = 0.29
     count: int = 6
     width: float = 1.2
+    material: object = None
 
     def __post_init__(self):
+        object.__setattr__(self, "material", _material(self.material, "Stairs.material"))
         object.__setattr__(self, "start", tuple(_start3(self.start, "Stairs.start").tolist()))
         object.__setattr__(self, "heading_deg", _finite(self.heading_deg, "Stairs.heading_deg"))
         for name in ("rise", "run", "width"):
@@ -147,7 +174,7 @@ class Stairs:
         for k in range(self.count):
             lx, lz = (k + 0.5) * self.run, 0.5 * (k + 1) * self.rise
             centre = (self.start[0] + c * lx, self.start[1] + s * lx, self.start[2] + lz)
-            out.append(Box(centre, (self.run, self.width, (k + 1) * self.rise), self.heading_deg))
+            out.append(Box(centre, (self.run, self.width, (k + 1) * self.rise), self.heading_deg, self.material))
         return out
 
 
@@ -163,6 +190,8 @@ class Ramp:
         Direction of ascent [deg].
     length, width, rise : float
         Horizontal length, width and total rise [m], > 0.
+    material : Uniform, Texture, float or None
+        Infrared material of its faces (module docstring).
     """
 
     start: tuple
@@ -170,8 +199,10 @@ class Ramp:
     length: float = 3.0
     width: float = 2.0
     rise: float = 0.5
+    material: object = None
 
     def __post_init__(self):
+        object.__setattr__(self, "material", _material(self.material, "Ramp.material"))
         object.__setattr__(self, "start", tuple(_start3(self.start, "Ramp.start").tolist()))
         object.__setattr__(self, "heading_deg", _finite(self.heading_deg, "Ramp.heading_deg"))
         for name in ("length", "width", "rise"):
@@ -201,14 +232,18 @@ class Target:
     yaw_deg : float
         Direction of the board's normal about map z [deg] (0: the board faces map +x, i.e. a camera
         looking along -x sees it head-on; the board is two-sided, so one looking along +x does too).
+    material : Uniform, Texture, float or None
+        Infrared material of both sides (module docstring).
     """
 
     centre: tuple
     width: float = 1.0
     height: float = 1.0
     yaw_deg: float = 0.0
+    material: object = None
 
     def __post_init__(self):
+        object.__setattr__(self, "material", _material(self.material, "Target.material"))
         object.__setattr__(self, "centre", tuple(_vector(self.centre, (3,), "Target.centre").tolist()))
         for name in ("width", "height"):
             object.__setattr__(self, name, check_positive_scalar(getattr(self, name), f"Target.{name}",
@@ -235,16 +270,20 @@ class HeightField:
         Node spacing [m], > 0.
     base_z : float, optional
         Bottom of the solid [m] (default: the lowest height); must not exceed any height.
+    material : Uniform, Texture, float or None
+        Infrared material of its surface and side walls (module docstring).
     """
 
     heights: np.ndarray
     origin: tuple = (0.0, 0.0)
     resolution: float = 0.02
     base_z: float | None = None
+    material: object = None
     _cell_max: np.ndarray = field(init=False, repr=False)
     _block_max: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
+        object.__setattr__(self, "material", _material(self.material, "HeightField.material"))
         h = np.asarray(self.heights)
         if h.ndim != 2 or h.shape[0] < 2 or h.shape[1] < 2:
             raise ValueError(f"HeightField.heights must be a 2-D array with at least 2 x 2 nodes, got shape {h.shape}")
@@ -275,7 +314,7 @@ class HeightField:
 
     @classmethod
     def from_function(cls, fn: Callable, x_range, y_range, resolution: float = 0.02,
-                      base_z: float | None = None) -> "HeightField":
+                      base_z: float | None = None, material=None) -> "HeightField":
         """Sample z = fn(x, y) onto a grid covering ``x_range`` x ``y_range`` [m].
 
         ``fn`` takes two arrays of the same shape (map x and y [m]) and returns heights [m] of that
@@ -297,7 +336,7 @@ class HeightField:
         z = np.asarray(fn(X, Y), dtype=np.float64)
         if z.shape != X.shape:
             raise ValueError(f"fn returned shape {z.shape}, expected {X.shape} (the shape of its inputs)")
-        return cls(z, (xr[0], yr[0]), res, base_z)
+        return cls(z, (xr[0], yr[0]), res, base_z, material)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -333,6 +372,11 @@ class _Packed:
     def __init__(self, scene: "Scene"):
         box_like = [p for p in scene.primitives if not isinstance(p, HeightField)]
         self.fields = [p for p in scene.primitives if isinstance(p, HeightField)]
+        # index into scene.primitives of each box-like primitive and each height field
+        self.box_index = np.array([k for k, p in enumerate(scene.primitives) if not isinstance(p, HeightField)],
+                                  dtype=np.int32)
+        self.field_index = np.array([k for k, p in enumerate(scene.primitives) if isinstance(p, HeightField)],
+                                    dtype=np.int32)
         n = len(box_like)
         self.kinds = np.zeros(n, dtype=np.int64)
         self.pf = np.zeros((n, 14))
@@ -395,6 +439,8 @@ class Scene:
         height fields in this order.
     ground_z : float or None
         Height of the ground plane (the solid half-space below it) [m]; None = no ground.
+    ground_material : Uniform, Texture, float or None
+        Infrared material of the ground plane (module docstring); None leaves it to the camera.
 
     Notes
     -----
@@ -408,7 +454,7 @@ class Scene:
 
     _KINDS = (Box, Stairs, Ramp, HeightField, Target)
 
-    def __init__(self, primitives: Sequence = (), ground_z: float | None = 0.0):
+    def __init__(self, primitives: Sequence = (), ground_z: float | None = 0.0, ground_material=None):
         prims = tuple(primitives)
         for k, p in enumerate(prims):
             if not isinstance(p, self._KINDS):
@@ -418,6 +464,7 @@ class Scene:
         self._ground_z = None if ground_z is None else _finite(ground_z, "ground_z")
         if self._ground_z is not None and abs(self._ground_z) > _LIMIT_M:
             raise ValueError(f"ground_z = {self._ground_z} is implausibly far; check its units")
+        self._ground_material = _material(ground_material, "Scene.ground_material")
         self._packed = None
 
     @property
@@ -430,13 +477,23 @@ class Scene:
         """Height of the ground plane [m], or None."""
         return self._ground_z
 
+    @property
+    def ground_material(self):
+        """Infrared material of the ground plane, or None (the camera's choice)."""
+        return self._ground_material
+
+    @property
+    def has_materials(self) -> bool:
+        """Whether the ground or any primitive carries its own infrared material."""
+        return self._ground_material is not None or any(p.material is not None for p in self._primitives)
+
     def __repr__(self) -> str:
         kinds = ", ".join(type(p).__name__ for p in self.primitives)
         return f"Scene(ground_z={self.ground_z}, primitives=[{kinds}])"
 
     def with_primitives(self, *primitives) -> "Scene":
-        """A new scene with ``primitives`` appended."""
-        return Scene(self.primitives + tuple(primitives), self.ground_z)
+        """A new scene with ``primitives`` appended (the same ground and ground material)."""
+        return Scene(self.primitives + tuple(primitives), self.ground_z, self._ground_material)
 
     @property
     def packed(self) -> _Packed:

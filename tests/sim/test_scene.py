@@ -7,8 +7,8 @@ import pytest
 
 from noise_model import D435, axial_sigma
 from noise_model.sim import (
-    DEFAULT_T_BASE_CAM, NOMINAL_BASE_HEIGHT_M, Box, HeightField, Ramp, Scene, Stairs, Target, add_noise,
-    camera_pose_cov, odometry_drift, render_depth, render_depth_reference, simulate_walk, walk,
+    DEFAULT_T_BASE_CAM, HIT_GROUND, HIT_NONE, NOMINAL_BASE_HEIGHT_M, Box, HeightField, Ramp, Scene, Stairs, Target,
+    add_noise, camera_pose_cov, odometry_drift, render_depth, render_depth_reference, simulate_walk, walk,
 )
 from noise_model.sim.targets import (
     camera_extrinsics, render_floor, render_planar_target, simulate_target_frames,
@@ -26,13 +26,24 @@ def rays(K, width, height):
 
 
 def both(scene, T, K=K, width=W, height=H, **kw):
-    """numba and reference renders, asserted equal (NaN pattern exactly, values to 1e-9)."""
+    """numba and reference renders, asserted equal (NaN pattern exactly, values to 1e-9); the primitive
+    index of both equal too, and asking for it changes neither depth nor angle."""
     z, th = render_depth(scene, K, width, height, T, **kw)
     zr, thr = render_depth_reference(scene, K, width, height, T, **kw)
     np.testing.assert_array_equal(np.isnan(z), np.isnan(zr))
     np.testing.assert_array_equal(np.isnan(th), np.isnan(z))
     np.testing.assert_allclose(z, zr, rtol=0, atol=1e-9)
     np.testing.assert_allclose(th, thr, rtol=0, atol=1e-9)
+    zi, thi, idx = render_depth(scene, K, width, height, T, return_index=True, **kw)
+    zri, thri, idxr = render_depth_reference(scene, K, width, height, T, return_index=True, **kw)
+    np.testing.assert_array_equal(zi, z)
+    np.testing.assert_array_equal(thi, th)
+    np.testing.assert_array_equal(zri, zr)
+    np.testing.assert_array_equal(thri, thr)
+    np.testing.assert_array_equal(idx, idxr)
+    assert idx.dtype == np.int32 and idx.shape == z.shape
+    np.testing.assert_array_equal(idx == HIT_NONE, np.isnan(z))
+    assert idx.min() >= HIT_NONE and idx.max() < len(scene.primitives)
     return z, th
 
 
@@ -204,6 +215,37 @@ def test_numba_equals_reference_looking_at_height_fields():
         scene = Scene(prims, ground_z=None if rng.random() < 0.5 else -0.6)
         pos = [rng.uniform(-2, nx * res + 2), rng.uniform(-2, ny * res + 2), rng.uniform(-0.3, 2.0)]
         both(scene, camera_extrinsics(pos, rng.uniform(-20, 80), rng.uniform(-180, 180)))
+
+
+def test_primitive_index_names_what_each_pixel_hit():
+    # looking along map +x, level, 1 m up: a box (index 1) ahead on the ground, a target (index 0) off to
+    # the side, a height field (index 2) behind the camera (out of view); the ground below, the sky above
+    scene = Scene([Target((2.0, 3.0, 1.0), 0.5, 0.5), Box((3.0, 0.0, 0.5), (1.0, 1.0, 1.0)),
+                   HeightField(np.zeros((3, 3)), (-5.0, -1.0), 0.5)], ground_z=0.0)
+    T = camera_extrinsics((0.0, 0.0, 1.0), pitch_down_deg=0.0)
+    z, _ = both(scene, T)
+    _, _, idx = render_depth(scene, K, W, H, T, return_index=True)
+    assert idx[30, 40] == 1                                         # the centre ray: the box's front face
+    assert idx[H - 1, 0] == HIT_GROUND and idx[0, 0] == HIT_NONE    # bottom-left: floor; top-left: sky
+    assert set(np.unique(idx)) == {HIT_NONE, HIT_GROUND, 1}         # the target and the field are out of view
+    assert np.all(z[idx == 1] <= 2.5 + 1e-12)
+    # a camera inside a solid is blinded: every pixel is no hit
+    _, _, idx = render_depth(scene, K, W, H, camera_extrinsics((3.0, 0.0, 0.5), 0.0), return_index=True)
+    assert np.all(idx == HIT_NONE)
+
+
+def test_primitives_and_the_ground_carry_a_material():
+    from noise_model.sim.stereo.materials import Uniform, concrete
+
+    b = Box((0.0, 0.0, 0.5), (1.0, 1.0, 1.0), material=0.3)
+    assert b.material == Uniform(0.3, "Box.material")
+    st = Stairs((0.0, 0.0), material=concrete())
+    assert all(step.material == concrete() for step in st.steps())
+    assert HeightField.from_function(lambda x, y: 0 * x, (0, 1), (0, 1), material=0.5).material.albedo == 0.5
+    scene = Scene([Box((0.0, 0.0, 0.5), (1.0, 1.0, 1.0))], ground_material=0.2)
+    assert scene.has_materials and scene.ground_material.albedo == 0.2
+    assert scene.with_primitives(b).ground_material == scene.ground_material
+    assert not Scene.stairs_scene().has_materials                   # materials are optional everywhere
 
 
 def test_rays_that_miss_everything():
@@ -498,6 +540,12 @@ def test_simulate_walk_yields_frames():
     (lambda: Scene.rough(np.random.default_rng(0), relief_m=-0.1), "relief_m"),
     (lambda: Scene().height_at([[0.0, 0.0, 0.0]]), r"xy must have shape \(M, 2\)"),
     (lambda: Scene().height_at([[np.nan, 0.0]]), "non-finite"),
+    (lambda: Box((0, 0, 0), (1, 1, 1), material=1.3), r"albedo of Box.material must lie in \[0, 1\]"),
+    (lambda: Stairs((0, 0), material=-0.1), "Stairs.material"),
+    (lambda: Ramp((0, 0), material="carpet"), "Ramp.material must be a Uniform, a Texture or an albedo"),
+    (lambda: Target((0, 0, 0), material=np.nan), "Target.material"),
+    (lambda: HeightField(np.zeros((3, 3)), material=2), "HeightField.material"),
+    (lambda: Scene(ground_material=1.5), "Scene.ground_material"),
 ])
 def test_bad_scene_inputs_raise(make, match):
     with pytest.raises(ValueError, match=match):

@@ -7,14 +7,16 @@ laser speckle, shot and read noise and 8-bit output (:mod:`.imagers`), and match
 does by default: census cost averaged over a box (:mod:`.census`), semi-global aggregation
 (:mod:`.sgm`), winner-take-all over 126 disparities with 1/32-px subpixel, second-peak, texture and
 left-right tests and small-segment removal, then z = f B / d in 1 mm units (:mod:`.matcher`).
-:class:`StereoD435` (:mod:`.pipeline`) chains them: scene and pose in, uint16 depth out.
+:class:`StereoD435` (:mod:`.pipeline`) chains them: scene and pose in, uint16 depth out. A scene's
+primitives may carry their own infrared ``material`` (:mod:`noise_model.sim.scene`); the camera's
+:class:`MaterialMap` covers the rest.
 
 Every numba kernel has a NumPy reference beside it (``*_reference``), and results do not depend on
 the thread count. The model's parameters, their sources and its validation against real D435 data
 are in docs/physical-d435.md.
 """
 
-from .materials import MaterialMap, Texture, Uniform, carpet, concrete, white_wall
+from .materials import MaterialMap, Texture, Uniform, as_material, carpet, concrete, white_wall
 from .matcher import D435_DEPTH_SIZES, PRESETS, MatcherParams, MatchResult, disparity_to_depth, match
 from .imagers import Exposure, ImagerModel
 from .pipeline import IRFrame, IRScene, StereoD435
@@ -22,6 +24,6 @@ from .projector import DotPattern, Projector, ProjectorView
 
 __all__ = [
     "StereoD435", "IRScene", "IRFrame", "DotPattern", "Projector", "ProjectorView", "ImagerModel", "Exposure",
-    "MaterialMap", "Uniform", "Texture", "concrete", "carpet", "white_wall", "MatcherParams", "MatchResult",
-    "PRESETS", "D435_DEPTH_SIZES", "match", "disparity_to_depth",
+    "MaterialMap", "Uniform", "Texture", "as_material", "concrete", "carpet", "white_wall", "MatcherParams",
+    "MatchResult", "PRESETS", "D435_DEPTH_SIZES", "match", "disparity_to_depth",
 ]

@@ -27,9 +27,17 @@ else ValueError naming the material.
 
 Placement
 ---------
-Primitives of :mod:`noise_model.sim` carry no material. A :class:`MaterialMap` assigns one by
-position: axis-aligned regions of the map frame (first match wins), then the ground plane
-(points within ``ground_tol_m`` of ``ground_z``), then the default.
+A :class:`MaterialMap` gives every surface point one material; the first rule that applies wins:
+
+1. the scene's own materials, by what the point belongs to (the renderer's primitive index,
+   ``noise_model.sim.render_depth(..., return_index=True)``): a primitive's ``material``, or the
+   scene's ``ground_material`` for the ground plane -- where they are not None;
+2. axis-aligned regions of the map frame, in order;
+3. the ground rule: points within ``ground_tol_m`` of z = ``ground_z``;
+4. the default.
+
+Without a primitive index (or when the scene carries no material) only rules 2-4 apply, so a scene
+without materials looks the same either way.
 """
 
 from __future__ import annotations
@@ -44,7 +52,7 @@ from ...numba_config import JIT, resolve_threads, threads
 
 __all__ = [
     "Uniform", "Texture", "MaterialMap", "concrete", "carpet", "white_wall", "fbm", "fbm_reference",
-    "triplanar_coordinates", "check_albedo",
+    "triplanar_coordinates", "check_albedo", "as_material",
 ]
 
 _TABLE_BITS = 16
@@ -165,22 +173,47 @@ def _select_kernel(code, c, src, out):
             out[i] = np.nan
 
 
+@njit(**JIT)
+def _position_code(x, y, z, lo, hi, ground_z, tol, use_ground):
+    """Rules 2-4 of the module docstring: region index, len(lo) for the ground, len(lo) + 1 default."""
+    n_regions = lo.shape[0]
+    for r in range(n_regions):
+        if lo[r, 0] <= x <= hi[r, 0] and lo[r, 1] <= y <= hi[r, 1] and lo[r, 2] <= z <= hi[r, 2]:
+            return r
+    if use_ground and abs(z - ground_z) <= tol:
+        return n_regions
+    return n_regions + 1
+
+
 @njit(parallel=True, **JIT)
 def _assign_kernel(p, lo, hi, ground_z, tol, use_ground, out):
-    """Material code per point: region index, then len(lo) for the ground, len(lo) + 1 default, -1 NaN."""
-    n_regions = lo.shape[0]
+    """Material code per point by position (:func:`_position_code`); -1 where the point is NaN."""
     for i in prange(p.shape[0]):
         x, y, z = p[i, 0], p[i, 1], p[i, 2]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
             out[i] = -1
             continue
-        code = n_regions + 1
-        for r in range(n_regions):
-            if lo[r, 0] <= x <= hi[r, 0] and lo[r, 1] <= y <= hi[r, 1] and lo[r, 2] <= z <= hi[r, 2]:
-                code = r
-                break
-        if code == n_regions + 1 and use_ground and abs(z - ground_z) <= tol:
-            code = n_regions
+        out[i] = _position_code(x, y, z, lo, hi, ground_z, tol, use_ground)
+
+
+@njit(parallel=True, **JIT)
+def _assign_indexed_kernel(p, index, prim_code, ground_code, lo, hi, ground_z, tol, use_ground, out):
+    """Material code per point with the scene's materials first (rule 1): prim_code[index] for a
+    primitive (index >= 0), ground_code for the ground plane (index -1), where they are >= 0; then
+    :func:`_position_code`; -1 where the point is NaN."""
+    for i in prange(p.shape[0]):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            out[i] = -1
+            continue
+        k = index[i]
+        code = -1
+        if k >= 0:
+            code = prim_code[k]
+        elif k == -1:
+            code = ground_code
+        if code < 0:
+            code = _position_code(x, y, z, lo, hi, ground_z, tol, use_ground)
         out[i] = code
 
 
@@ -385,6 +418,38 @@ def white_wall() -> Uniform:
     return Uniform(0.8, "white wall")
 
 
+def as_material(value, name: str):
+    """``value`` as a material: a :class:`Uniform` or :class:`Texture` as it is, a number as a uniform
+    albedo in [0, 1] called ``name``; anything else is a ValueError naming ``name``."""
+    if isinstance(value, (Uniform, Texture)):
+        return value
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise ValueError(f"{name} must be a Uniform, a Texture or an albedo in [0, 1], got {value!r}")
+    return Uniform(check_albedo(value, name), name)
+
+
+def _scene_codes(scene, first_code: int):
+    """The scene's own materials (rule 1) as codes from ``first_code``.
+
+    Returns (materials, prim_code (n_primitives,) int64, ground_code): each distinct material once,
+    the code of each primitive's material (-1 = none) and of the ground's (-1 = none).
+    """
+    found: list = []
+
+    def code(mat) -> int:
+        if mat is None:
+            return -1
+        for j, m in enumerate(found):
+            if m is mat or m == mat:
+                return first_code + j
+        found.append(mat)
+        return first_code + len(found) - 1
+
+    prim_code = np.array([code(getattr(p, "material", None)) for p in scene.primitives], dtype=np.int64)
+    ground_code = code(getattr(scene, "ground_material", None))
+    return found, prim_code, ground_code
+
+
 @dataclass(frozen=True)
 class MaterialMap:
     """Materials of a scene by position (module docstring).
@@ -427,10 +492,14 @@ class MaterialMap:
         if self.ground is not None:
             _check_material(self.ground, "ground")
 
-    def evaluate(self, points_map, normals_map, nthreads: int | None = None, out=None, scratch=None) -> np.ndarray:
+    def evaluate(self, points_map, normals_map, nthreads: int | None = None, out=None, scratch=None,
+                 index=None, scene=None) -> np.ndarray:
         """Albedo (N,) of surface points (N, 3) with normals (N, 3) [map frame]; NaN where the point is NaN.
 
         ``out`` and ``scratch`` are optional (N,) float64 buffers (reused from frame to frame).
+        ``index`` (N,) int, the renderer's primitive index of each point (k >= 0: ``scene.primitives[k]``,
+        -1: the ground plane, -2: no hit), with ``scene``, applies the scene's own materials first
+        (rule 1 of the module docstring).
         """
         p = np.ascontiguousarray(points_map, dtype=np.float64).reshape(-1, 3)
         nrm = np.ascontiguousarray(normals_map, dtype=np.float64).reshape(-1, 3)
@@ -438,11 +507,18 @@ class MaterialMap:
         lo = np.array([r[0] for r in self.regions], dtype=np.float64).reshape(-1, 3)
         hi = np.array([r[1] for r in self.regions], dtype=np.float64).reshape(-1, 3)
         use_ground = self.ground is not None and self.ground_z is not None
+        gz, tol = float(self.ground_z) if use_ground else 0.0, float(self.ground_tol_m)
         code = np.empty(len(p), np.int32)
-        with threads(n):
-            _assign_kernel(p, lo, hi, float(self.ground_z) if use_ground else 0.0, float(self.ground_tol_m),
-                           use_ground, code)
         materials = [r[2] for r in self.regions] + [self.ground, self.default]
+        idx = _check_index(index, scene, len(p))
+        if idx is not None:
+            extra, prim_code, ground_code = _scene_codes(scene, len(materials))
+            materials += extra
+            with threads(n):
+                _assign_indexed_kernel(p, idx, prim_code, ground_code, lo, hi, gz, tol, use_ground, code)
+        else:
+            with threads(n):
+                _assign_kernel(p, lo, hi, gz, tol, use_ground, code)
         present = np.flatnonzero(_count_codes(code, len(materials)))
         out = _out(out, len(p))
         if len(present) == 1:                      # one material for every surface point (NaN stays NaN)
@@ -456,12 +532,21 @@ class MaterialMap:
                 _select_kernel(code, c, materials[c].evaluate(p, nrm, n, out=scratch), out)
         return out
 
-    def evaluate_reference(self, points_map, normals_map) -> np.ndarray:
+    def evaluate_reference(self, points_map, normals_map, index=None, scene=None) -> np.ndarray:
         """NumPy reference of :meth:`evaluate` (the rules by masks, each material's own reference)."""
         p = np.asarray(points_map, dtype=np.float64).reshape(-1, 3)
         nrm = np.asarray(normals_map, dtype=np.float64).reshape(-1, 3)
         out = np.full(len(p), np.nan)
         todo = np.isfinite(p).all(axis=1)
+        idx = _check_index(index, scene, len(p))
+        if idx is not None:
+            owners = [(idx == k, prim.material) for k, prim in enumerate(scene.primitives)]
+            owners.append((idx == -1, scene.ground_material))
+            for m, mat in owners:
+                m = m & todo
+                if mat is not None and m.any():
+                    out[m] = mat.evaluate_reference(p[m], nrm[m])
+                    todo &= ~m
         for lo, hi, mat in self.regions:
             m = todo & np.all((p >= lo) & (p <= hi), axis=1)
             if m.any():
@@ -475,6 +560,23 @@ class MaterialMap:
         if todo.any():
             out[todo] = self.default.evaluate_reference(p[todo], nrm[todo])
         return out
+
+
+def _check_index(index, scene, n: int):
+    """The primitive index as a contiguous int32 (n,) array, or None when rule 1 does not apply."""
+    if index is None and scene is None:
+        return None
+    if index is None or scene is None:
+        raise ValueError("give the primitive index and the scene together (or neither)")
+    idx = np.ascontiguousarray(index, dtype=np.int32).reshape(-1)
+    if idx.shape != (n,):
+        raise ValueError(f"index must hold one primitive index per point ({n}), got {idx.size}")
+    if idx.size and (idx.min() < -2 or idx.max() >= len(scene.primitives)):
+        raise ValueError(f"index must lie in [-2, {len(scene.primitives) - 1}] (the scene's primitives, "
+                         f"-1 ground, -2 no hit), got [{idx.min()}, {idx.max()}]")
+    if not getattr(scene, "has_materials", False):
+        return None
+    return idx
 
 
 def _out(buf, n: int) -> np.ndarray:

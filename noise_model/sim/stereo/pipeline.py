@@ -6,7 +6,9 @@ Stages (one module each)
    imager's x axis) and the projector (``noise_model.sim.render_depth``, or any renderer with its
    signature); the imagers at ``supersample`` x ``supersample`` samples per pixel; points and normals
    from the z-depth (:func:`.imagers.surface_geometry`).
-2. Materials: albedo of every surface point (:mod:`.materials`, a :class:`.materials.MaterialMap`).
+2. Materials: albedo of every surface point (:mod:`.materials`): the scene's own materials by
+   primitive (a primitive's ``material``, the scene's ``ground_material``; read through the
+   renderer's primitive index), then the camera's :class:`.materials.MaterialMap` by position.
 3. Projector: irradiance of the dot pattern with inverse-square fall-off, incidence cosine and
    shadows from the projector's own view (:mod:`.projector`); plus a uniform ambient irradiance.
 4. Imagers: radiance, relative illumination, lens blur, pixel integration -> noise-free electron
@@ -107,8 +109,8 @@ class StereoD435:
     matcher : str or MatcherParams
         Matcher preset ("default", "high_accuracy") or parameters.
     materials : MaterialMap, Uniform or Texture
-        Albedo of the scene's surfaces (default: white walls and boxes, concrete ground); one material
-        applies to every surface.
+        Albedo of the surfaces whose primitive names no material of its own (default: white walls and
+        boxes, concrete ground); a Uniform or Texture applies to every such surface.
     ambient_w_m2 : float
         Uniform ambient irradiance at 850 nm on every surface [W/m^2] (0: projector only).
     shadow_scale : float
@@ -119,7 +121,8 @@ class StereoD435:
         Depth unit of the output (0.001).
     renderer : callable, optional
         ``renderer(scene, K, width, height, T_map_cam) -> (z, theta)``; default
-        ``noise_model.sim.render_depth``.
+        ``noise_model.sim.render_depth``. For a scene that carries materials it is called with
+        ``return_index=True`` and must then also return the primitive index (as ``render_depth``).
     nthreads : int, optional
         numba threads; results do not depend on it.
     """
@@ -185,11 +188,14 @@ class StereoD435:
         T[0, 3] = self.baseline_m
         return np.asarray(T_map_cam, dtype=np.float64) @ T
 
-    def _render(self, scene, K, width, height, T):
+    def _render(self, scene, K, width, height, T, return_index: bool = False):
         if self.renderer is None:
-            from .. import render_depth
+            from ..render import render_depth
 
-            return render_depth(scene, K, width, height, T, max_range_m=self.max_range_m, nthreads=self.nthreads)
+            return render_depth(scene, K, width, height, T, max_range_m=self.max_range_m, nthreads=self.nthreads,
+                                return_index=return_index)
+        if return_index:
+            return self.renderer(scene, K, width, height, T, return_index=True)
         return self.renderer(scene, K, width, height, T)
 
     def _buffer(self, name: str, shape) -> np.ndarray | None:
@@ -203,7 +209,8 @@ class StereoD435:
         """Ambient and projector electron rates (H, W) of one imager at x_cam_m along the left x axis."""
         s = self.imager.supersample
         Ks = sample_intrinsics(self.K, s)
-        z, _ = self._render(scene, Ks, self.width * s, self.height * s, T_map_i)
+        own = bool(getattr(scene, "has_materials", False))        # the scene's materials need the primitive index
+        z, _, *index = self._render(scene, Ks, self.width * s, self.height * s, T_map_i, return_index=own)
         z = np.ascontiguousarray(z, dtype=np.float64)
         hs, ws = z.shape
         hit = bool(np.isfinite(z).any())
@@ -214,7 +221,9 @@ class StereoD435:
         p_map, n_map = to_map_frame(p, n, T_map_i, self.nthreads,
                                     out=(self._buffer("p_map", p.shape), self._buffer("n_map", n.shape)))
         albedo = self.materials.evaluate(p_map, n_map, self.nthreads, out=self._buffer("albedo", (hs * ws,)),
-                                         scratch=self._buffer("scratch", (hs * ws,))).reshape(hs, ws)
+                                         scratch=self._buffer("scratch", (hs * ws,)),
+                                         index=index[0].reshape(-1) if own else None,
+                                         scene=scene if own else None).reshape(hs, ws)
         p[:, 0] += x_cam_m - self.projector.offset_m                 # camera frame -> projector frame
         e_proj = self.projector.irradiance(p, n, occlusion=view, nthreads=self.nthreads,
                                            out=self._buffer("e_proj", (hs * ws,))).reshape(hs, ws)
@@ -283,6 +292,13 @@ class StereoD435:
         left, right, exposure = self.ir_pair(ir, rng)
         depth, res = self.depth(left, right)
         return IRFrame(left, right, exposure, res, depth)
+
+    def depth_frame(self, scene, T_map_cam, rng: np.random.Generator) -> np.ndarray:
+        """One depth frame (H, W) uint16 of a camera at ``T_map_cam``: rendered there, fresh noise.
+
+        The frames of a moving camera (a walk); ``rng`` gives this frame's sensor noise.
+        """
+        return self.frame(self.render(scene, T_map_cam), rng).depth
 
     def frames(self, scene, T_map_cam, n_frames: int, rng) -> np.ndarray:
         """``n_frames`` depth frames (n, H, W) uint16 of a static camera; rendered once, noise per frame.
