@@ -19,6 +19,7 @@ walk, odometry_drift, simulate_walk     trajectories, odometry drift, simulated 
 alternatives                            other point-noise models for comparisons: constant, quadratic
                                         (elevation_mapping_cupy), anybotics_d435 (ANYbotics' D435 preset)
 effects, correlated_noise, depth_bias   depth effects for the simulator's effects hook (EFFECTS by name)
+stereo                                  the physical D435 (noise_model.sim.stereo: StereoD435, materials)
 
 This package never imports ``elevmap``, rerun, pyrealsense2 or OpenCV.
 """
@@ -44,6 +45,7 @@ _LAZY = {
     "alternatives": ("noise_model.alternatives", None),
     "sim": ("noise_model.sim", None),
     "effects": ("noise_model.sim.effects", None),
+    "stereo": ("noise_model.sim.stereo", None),
     "scene": ("noise_model.sim", None),
     "analysis": ("noise_model.analysis", None),
     "EFFECTS": ("noise_model.sim.effects", "EFFECTS"),

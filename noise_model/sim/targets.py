@@ -1,4 +1,4 @@
-"""Planar targets seen by a posed D435, and the one reference simulation of their frames.
+"""Planar targets seen by a posed D435: the one reference simulation of their frames, and the physical one.
 
 Conventions are those of the capture-set format (docs/capture-set-format.md): camera frame x right,
 y down, z forward; depth is z, not ray length. Pixel (u, v) = (column, row), 0-based, integer
@@ -14,6 +14,9 @@ fronto-parallel background wall.
 * :func:`simulate_target`: the reference simulation of a planar target, the one every caller uses
   (:func:`simulate_target_frames` takes the target as arguments, and
   ``noise_model.analysis.capture_data.simulate_capture`` adds the capture's context for the effects).
+* :func:`simulate_target_stereo`: the same capture seen by the physical D435
+  (:mod:`noise_model.sim.stereo`), its target expressed as a :class:`~noise_model.sim.scene.Scene`
+  (:meth:`CaptureGeometry.scene`); chosen explicitly, the reference stays the default everywhere.
 
 The reference simulation
 ------------------------
@@ -68,9 +71,11 @@ import numpy as np
 from ..checks import check_intrinsics, check_positive_scalar
 from ..d435 import D435, SensorModel
 from .noise import add_noise
+from .scene import Scene, Target
 
 __all__ = ["target_rotation", "camera_extrinsics", "render_planar_target", "render_floor", "CaptureGeometry",
-           "simulate_target", "simulate_target_frames", "REGION_NONE", "REGION_INTERIOR", "REGION_EDGE_LEFT",
+           "simulate_target", "simulate_target_frames", "simulate_target_stereo", "REGION_NONE", "REGION_INTERIOR",
+           "REGION_EDGE_LEFT",
            "REGION_EDGE_RIGHT", "REGION_LEFT_BAND", "REGION_BACKGROUND", "REGION_NAMES", "LEFT_BAND_MARGIN_PX_424",
            "EDGE_PX_424", "LATERAL_EDGE_SIGMAS"]
 
@@ -376,6 +381,67 @@ class CaptureGeometry:
             self._cache["nominal"] = (z.copy(), th.copy())
         return z, th
 
+    def scene(self, max_range_m: float = 10.0, material=None, background_material=None):
+        """The capture as a scene of primitives and a camera pose, for the physical D435.
+
+        The target becomes a :class:`~noise_model.sim.scene.Target` at the map point (0, 0, 1) facing
+        map -x (board axes R e_x, R e_y, R e_z -> map y, -z, -x); a wall is a target reaching beyond
+        ``max_range_m`` in every direction. The camera's pose follows from the target's pose in the
+        camera frame (c = (0, 0, distance_m), axes R): T_map_cam = T_map_board T_cam_board^-1. A
+        background wall is a second target, fronto-parallel to the camera at z = ``background_m``; the
+        scene's targets stand vertical, so that needs a level optical axis (pitch 0). No ground.
+
+        Parameters
+        ----------
+        max_range_m : float
+            Range the scene must cover [m] (the camera's render range).
+        material, background_material : Uniform, Texture, float or None
+            Infrared materials of the target and the background (default: white paint, albedo 0.8).
+
+        Returns
+        -------
+        scene : Scene
+        T_map_cam : ndarray, shape (4, 4)
+
+        Raises
+        ------
+        ValueError
+            A background behind a pitched target.
+        """
+        from .stereo.materials import white_wall
+
+        rng_m = check_positive_scalar(max_range_m, "max_range_m", upper=1000.0, unit=" m")
+        t = self.target
+        R = target_rotation(t["yaw_deg"], t["pitch_deg"])
+        T_cam_board = np.eye(4)
+        T_cam_board[:3, :3] = R
+        T_cam_board[:3, 3] = (0.0, 0.0, t["distance_m"])
+        T_map_board = np.eye(4)
+        T_map_board[:3, :3] = np.column_stack([(0.0, 1.0, 0.0), (0.0, 0.0, -1.0), (-1.0, 0.0, 0.0)])
+        T_map_board[:3, 3] = (0.0, 0.0, 1.0)
+        T_map_cam = T_map_board @ np.linalg.inv(T_cam_board)
+        T_map_cam[3] = (0.0, 0.0, 0.0, 1.0)
+        mat = white_wall() if material is None else material
+        if self.kind == "board":
+            target = Target((0.0, 0.0, 1.0), t["width_m"], t["height_m"], 0.0, mat)
+        else:
+            reach = 2.0 * (t["distance_m"] + 2.0 * rng_m) + 2.0
+            target = Target((0.0, 0.0, 1.0), reach, reach, 0.0, mat)
+        prims = [target]
+        if self.background_m is not None:
+            axis = T_map_cam[:3, 2]
+            if abs(axis[2]) > 1e-9:
+                raise ValueError(f"{self.id}: a background wall behind a target pitched by {t['pitch_deg']} deg "
+                                 f"cannot be built from the scene's vertical targets; use pitch 0")
+            bg = self.background_m
+            half_w = bg * max(self.K[0, 2], self.width - self.K[0, 2]) / self.K[0, 0]
+            half_h = bg * max(self.K[1, 2], self.height - self.K[1, 2]) / self.K[1, 1]
+            centre = T_map_cam[:3, 3] + bg * axis
+            prims.append(Target(tuple(centre), 2.4 * half_w + 4.0 * self.baseline_m + 1.0, 2.4 * half_h + 1.0,
+                                math.degrees(math.atan2(axis[1], axis[0])),
+                                white_wall() if background_material is None else background_material))
+        return Scene(prims, ground_z=None), T_map_cam
+
     def board_coordinates(self) -> tuple[np.ndarray, np.ndarray]:
         """Coordinates (s, t) [m] on the target's plane of every pixel's ray (board frame axes R e_x, R e_y).
 
@@ -660,3 +726,49 @@ def simulate_target_frames(K, width: int, height: int, distance_m: float, n_fram
         target.update(width_m=width_m, height_m=height_m)
     geometry = CaptureGeometry("target", K, width, height, depth_scale, model.baseline_m, target, background_m)
     return simulate_target(geometry, nf, rng, model, effects)
+
+
+def simulate_target_stereo(geometry: CaptureGeometry, n_frames: int, rng: np.random.Generator,
+                           preset: str = "default", camera=None) -> np.ndarray:
+    """Frames of a planar target seen by the physical D435 (:mod:`noise_model.sim.stereo`).
+
+    The capture becomes a scene (:meth:`CaptureGeometry.scene`), rendered once (the camera is static)
+    and matched ``n_frames`` times with fresh sensor noise drawn from ``rng``; the dot pattern and the
+    materials are fixed, so a seed gives the same frames every run.
+
+    Parameters
+    ----------
+    geometry : CaptureGeometry
+        The target, camera and depth scale; its image size must be a D435 depth mode.
+    n_frames : int
+        Frames, >= 1.
+    rng : numpy.random.Generator
+        The sensor noise.
+    preset : str
+        The matcher's preset ("default", "high_accuracy").
+    camera : noise_model.sim.stereo.StereoD435, optional
+        The camera (default: the geometry's size, intrinsics, baseline and depth scale, with ``preset``);
+        its size and intrinsics must be the geometry's.
+
+    Returns
+    -------
+    ndarray, shape (n_frames, height, width), uint16
+        Depth units of ``geometry.depth_scale`` [m]; 0 = no data.
+    """
+    from .stereo.pipeline import StereoD435
+
+    if not isinstance(geometry, CaptureGeometry):
+        raise ValueError(f"geometry must be a CaptureGeometry, got {type(geometry).__name__}")
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError("rng must be a numpy.random.Generator (seed it: np.random.default_rng(seed))")
+    g = geometry
+    if camera is None:
+        camera = StereoD435(g.width, g.height, K=g.K, baseline_m=g.baseline_m, matcher=preset,
+                            depth_unit_m=g.depth_scale)
+    elif not isinstance(camera, StereoD435):
+        raise ValueError(f"camera must be a StereoD435, got {type(camera).__name__}")
+    elif (camera.width, camera.height) != (g.width, g.height) or not np.allclose(camera.K, g.K) \
+            or camera.depth_unit_m != g.depth_scale:
+        raise ValueError(f"{g.id}: the camera's size, intrinsics and depth unit must be the capture's")
+    scene, T_map_cam = g.scene(max_range_m=camera.max_range_m)
+    return camera.frames(scene, T_map_cam, n_frames, rng)

@@ -11,7 +11,8 @@ current segment; the base is ``base_height_m`` above the terrain. The default ca
 ground, the camera is 0.45 m above the ground. :func:`odometry_drift` integrates noisy increments
 (a random walk per metre travelled) and propagates their first-order covariance. :func:`simulate_walk`
 renders each frame from the true camera pose (:func:`~noise_model.sim.render.render_depth`), adds the
-reference noise (:func:`~noise_model.sim.noise.add_noise`) and reports the true or the drifted pose.
+reference noise (:func:`~noise_model.sim.noise.add_noise`) -- or, with ``sensor="stereo"``, lets the
+physical D435 of :mod:`noise_model.sim.stereo` make the frame -- and reports the true or the drifted pose.
 """
 
 from __future__ import annotations
@@ -233,7 +234,7 @@ def simulate_walk(scene: Scene, K, width: int, height: int, n_frames: int | None
                   base_height_m: float = NOMINAL_BASE_HEIGHT_M, follow_terrain: bool = True,
                   terrain_window_m: float = 0.5, max_range_m: float = 10.0, depth_scale: float = 0.001,
                   sigma_xy_per_m: float = 0.02, sigma_yaw_per_m: float = 0.01,
-                  nthreads: int | None = None) -> Iterator[dict]:
+                  nthreads: int | None = None, sensor="reference", preset: str = "default") -> Iterator[dict]:
     """Depth frames of a camera on a robot walking through a scene.
 
     Parameters
@@ -251,9 +252,9 @@ def simulate_walk(scene: Scene, K, width: int, height: int, n_frames: int | None
     rng : numpy.random.Generator
         Required: drift and noise draw from it, in frame order (drift first, for the whole walk).
     noise : {"reference", "none"}
-        The reference simulation of the paper's model (with ``model``), or quantisation only.
+        With the reference sensor: the paper's model (with ``model``), or quantisation only.
     effects : sequence of callables, optional
-        Extra effects, see :func:`add_noise`.
+        Extra effects of the reference sensor, see :func:`add_noise`.
     drift : bool
         Report odometry poses (:func:`odometry_drift`) instead of the true ones.
     model : SensorModel
@@ -270,6 +271,14 @@ def simulate_walk(scene: Scene, K, width: int, height: int, n_frames: int | None
         Drift densities (see :func:`odometry_drift`).
     nthreads : int, optional
         numba threads for rendering.
+    sensor : "reference", "stereo" or noise_model.sim.stereo.StereoD435
+        What makes the depth: the ray-cast depth plus the reference noise (default), or the physical
+        D435 (``"stereo"``: ``StereoD435(width, height, K=K, matcher=preset)`` with this walk's range
+        and depth unit; or a camera of your own, of this size and intrinsics), each frame rendered at
+        its pose with fresh sensor noise from ``rng``. The physical sensor makes its own noise, so it
+        takes neither ``noise="none"``, ``effects`` nor ``model``.
+    preset : str
+        Matcher preset of ``sensor="stereo"`` ("default", "high_accuracy").
 
     Returns
     -------
@@ -296,6 +305,10 @@ def simulate_walk(scene: Scene, K, width: int, height: int, n_frames: int | None
     for k, e in enumerate(effects):
         if not callable(e):
             raise ValueError(f"effects[{k}] is not callable: {e!r}")
+    stereo = _stereo_camera(sensor, preset, K, width, height, max_range_m, scale, nthreads)
+    if stereo is not None and (noise != "reference" or effects or model is not D435):
+        raise ValueError("the physical D435 (sensor='stereo') makes its own noise: it takes no noise='none', "
+                         "effects or model")
     nf = None
     if n_frames is not None:
         if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
@@ -320,13 +333,34 @@ def simulate_walk(scene: Scene, K, width: int, height: int, n_frames: int | None
         for i in range(len(poses)):
             T_true = poses[i] @ Tbc
             T_rep = reported[i] @ Tbc
-            z, theta = render_depth(scene, K, width, height, T_true, max_range_m, nthreads)
             stamp = i / rate
-            ctx = {"K": K, "index": i, "stamp": stamp, "T_map_cam": T_true}
-            depth = add_noise(z, theta, rng, noise_model, effects, scale, ctx)
+            if stereo is not None:
+                depth = stereo.depth_frame(scene, T_true, rng)
+            else:
+                z, theta = render_depth(scene, K, width, height, T_true, max_range_m, nthreads)
+                ctx = {"K": K, "index": i, "stamp": stamp, "T_map_cam": T_true}
+                depth = add_noise(z, theta, rng, noise_model, effects, scale, ctx)
             cov = None if base_covs is None else camera_pose_cov(base_covs[i], reported[i], Tbc)
             yield {"depth": depth, "depth_scale": scale, "K": K.copy(), "T_map_cam": T_rep,
                    "T_map_cam_true": T_true, "pose_cov": cov, "stamp": stamp, "index": i,
                    "T_map_base": reported[i].copy(), "T_map_base_true": poses[i].copy(), "T_base_cam": Tbc.copy()}
 
     return frames()
+
+
+def _stereo_camera(sensor, preset, K, width, height, max_range_m, depth_scale, nthreads):
+    """The physical D435 of a walk (``sensor`` of :func:`simulate_walk`), or None for the reference sensor."""
+    if isinstance(sensor, str) and sensor == "reference":
+        return None
+    from .stereo.pipeline import StereoD435       # loads the physical model only when it is asked for
+
+    if isinstance(sensor, StereoD435):
+        if (sensor.width, sensor.height) != (width, height) or not np.allclose(sensor.K, K) \
+                or sensor.depth_unit_m != depth_scale:
+            raise ValueError(f"the stereo camera ({sensor.width}x{sensor.height}, depth unit {sensor.depth_unit_m} m) "
+                             f"must have the walk's size {width}x{height}, K and depth_scale {depth_scale} m")
+        return sensor
+    if isinstance(sensor, str) and sensor == "stereo":
+        return StereoD435(width, height, K=K, matcher=preset, max_range_m=float(max_range_m),
+                          depth_unit_m=depth_scale, nthreads=nthreads)
+    raise ValueError(f"sensor must be 'reference', 'stereo' or a StereoD435, got {sensor!r}")
