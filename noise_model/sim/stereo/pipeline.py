@@ -278,8 +278,8 @@ class StereoD435:
         """One noisy infrared pair (left, right) at the auto (or manual) exposure of the left image."""
         exposure = auto_exposure(ir.rate_left, self.imager)
         c = self.projector.speckle_contrast
-        left = expose(ir.ambient_left, ir.projector_left, exposure, rng, self.imager, c)
-        right = expose(ir.ambient_right, ir.projector_right, exposure, rng, self.imager, c)
+        left = expose(ir.ambient_left, ir.projector_left, exposure, rng, self.imager, c, self.focal_px)
+        right = expose(ir.ambient_right, ir.projector_right, exposure, rng, self.imager, c, self.focal_px)
         return left, right, exposure
 
     def depth(self, left, right) -> tuple[np.ndarray, MatchResult]:
