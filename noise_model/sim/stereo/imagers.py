@@ -29,8 +29,11 @@ Image formation (:func:`render_rates`, :func:`expose`)
 * Exposure: manual (``exposure_s``, ``gain``) or auto: the exposure time that brings the left
   image's mean signal to ``ae_target`` of full scale, at most ``max_exposure_s``, then analogue gain
   up to ``max_gain`` (:func:`auto_exposure`).
-* Per frame: the projector's share of the rate times a fresh laser-speckle factor (:func:`expose`),
-  then photo-electrons ~ Poisson(rate t) (shot noise), plus read noise N(0, sigma_read^2),
+* Per frame: each imager's pointing jitters about its y axis by a fresh N(0, sigma_p^2) angle
+  (``pointing_jitter_rad``), which moves its image sideways by f sigma_p px (:func:`shift_columns`);
+  the two imagers jitter independently, so the disparity of the whole frame moves by
+  N(0, 2 f^2 sigma_p^2), the frame-wide offset a real D435 shows; then the projector's share of the
+  rate times a fresh laser-speckle factor (:func:`expose`), then photo-electrons ~ Poisson(rate t) (shot noise), plus read noise N(0, sigma_read^2),
   times gain, converted at full_well / 1023 e- per 10-bit DN, plus the black level, rounded and
   clipped to 0..1023; the 8-bit output is the 10-bit value's top eight bits (DN // 4). Fresh noise
   every frame; the scene, the pattern and therefore the noise-free rates do not change.
@@ -51,7 +54,7 @@ from ...numba_config import JIT, resolve_threads, threads
 __all__ = [
     "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
     "signal_rate", "signal_rate_reference", "integrate_samples", "auto_exposure", "expose", "to_map_frame",
-    "PLANCK_J_S", "LIGHT_M_S",
+    "shift_columns", "shift_columns_reference", "PLANCK_J_S", "LIGHT_M_S",
 ]
 
 PLANCK_J_S = 6.62607015e-34
@@ -97,6 +100,11 @@ class ImagerModel:
         Longest exposure (one frame at 30 fps).
     max_gain : float
         Largest analogue gain (the D435's gain 248 over its base 16).
+    pointing_jitter_rad : float
+        Standard deviation of each imager's per-frame pointing jitter about its y axis [rad] (0 = none):
+        the frame-wide disparity offset of a real D435, sqrt(2) f sigma_p px per frame; fitted to the
+        per-frame offset that the wall and the floor of the aims_slam recording share
+        (docs/physical-d435.md).
     """
 
     focal_length_m: float = 1.93e-3
@@ -116,6 +124,7 @@ class ImagerModel:
     ae_target: float = 1536.0 / 4096.0
     max_exposure_s: float = 0.033
     max_gain: float = 248.0 / 16.0
+    pointing_jitter_rad: float = 1.5e-5
 
     def __post_init__(self):
         for name in ("focal_length_m", "native_focal_px", "f_number", "wavelength_m", "full_well_e",
@@ -123,7 +132,8 @@ class ImagerModel:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v!r}")
-        for name in ("read_noise_e", "black_level_dn", "blur_sigma_native_px", "vignetting_power"):
+        for name in ("read_noise_e", "black_level_dn", "blur_sigma_native_px", "vignetting_power",
+                     "pointing_jitter_rad"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
@@ -415,6 +425,40 @@ def integrate_samples(rate_samples, supersample: int, blur_sigma_px: float) -> n
     return r.reshape(hs // s, s, ws // s, s).mean(axis=(1, 3))
 
 
+@njit(parallel=True, **JIT)
+def _shift_kernel(rate, dx, out):
+    h, w = rate.shape
+    for v in prange(h):
+        for u in range(w):
+            x = u - dx
+            x = min(max(x, 0.0), w - 1.0)
+            x0 = min(int(np.floor(x)), w - 2) if w > 1 else 0
+            t = x - x0
+            out[v, u] = rate[v, x0] * (1.0 - t) + rate[v, x0 + 1] * t if w > 1 else rate[v, 0]
+
+
+def shift_columns(rate, dx_px: float, nthreads: int | None = None) -> np.ndarray:
+    """An image moved sideways by ``dx_px`` [px]: out(u) = rate(u - dx) by linear interpolation (numba).
+
+    Columns beyond the border read the border column. ``rate`` (H, W); returns a new float64 array.
+    """
+    r = np.ascontiguousarray(rate, dtype=np.float64)
+    if r.ndim != 2:
+        raise ValueError(f"rate must be a 2-D image, got shape {r.shape}")
+    out = np.empty_like(r)
+    with threads(resolve_threads(nthreads)):
+        _shift_kernel(r, float(dx_px), out)
+    return out
+
+
+def shift_columns_reference(rate, dx_px: float) -> np.ndarray:
+    """NumPy reference of :func:`shift_columns`."""
+    r = np.asarray(rate, dtype=np.float64)
+    w = r.shape[1]
+    x = np.clip(np.arange(w) - float(dx_px), 0.0, w - 1.0)
+    return np.stack([np.interp(x, np.arange(w), row) for row in r]) if w > 1 else r.copy()
+
+
 def auto_exposure(rate_left, model: ImagerModel) -> Exposure:
     """Exposure time and gain that bring the mean signal of ``rate_left`` [e-/s] to ``ae_target``.
 
@@ -435,8 +479,8 @@ def auto_exposure(rate_left, model: ImagerModel) -> Exposure:
 
 
 def expose(rate_ambient, rate_projector, exposure: Exposure, rng: np.random.Generator, model: ImagerModel,
-           speckle_contrast: float = 0.0) -> np.ndarray:
-    """One frame of an imager: laser speckle, shot and read noise, gain, conversion, black level, bits.
+           speckle_contrast: float = 0.0, focal_px: float | None = None) -> np.ndarray:
+    """One frame of an imager: pointing jitter, laser speckle, shot and read noise, gain, conversion, bits.
 
     Parameters
     ----------
@@ -445,7 +489,8 @@ def expose(rate_ambient, rate_projector, exposure: Exposure, rng: np.random.Gene
     exposure : Exposure
         Exposure time [s] and gain.
     rng : numpy.random.Generator
-        Draws the noise in this order: speckle (if any), Poisson shot noise, Gaussian read noise.
+        Draws the noise in this order: pointing jitter (if any), speckle (if any), Poisson shot noise,
+        Gaussian read noise.
     model : ImagerModel
         The imager.
     speckle_contrast : float
@@ -453,6 +498,9 @@ def expose(rate_ambient, rate_projector, exposure: Exposure, rng: np.random.Gene
         rate is multiplied by a fresh Gamma(1 / C^2, C^2) factor (mean 1, sd C; the intensity
         statistics of speckle averaged over a few grains), independently in the two imagers, which see
         different speckle through their own apertures. 0 = none.
+    focal_px : float, optional
+        Focal length of the image [px]: with ``model.pointing_jitter_rad`` > 0 the frame is moved
+        sideways by f N(0, sigma_p^2) px (:func:`shift_columns`) before the noise. None = no jitter.
 
     Returns
     -------
@@ -460,10 +508,15 @@ def expose(rate_ambient, rate_projector, exposure: Exposure, rng: np.random.Gene
         uint8 (8-bit output: the 10-bit value // 4) or uint16 (10-bit levels).
     """
     proj = np.asarray(rate_projector, dtype=np.float64)
+    amb = np.asarray(rate_ambient, dtype=np.float64)
+    if focal_px is not None and model.pointing_jitter_rad > 0:
+        dx = float(rng.normal(0.0, model.pointing_jitter_rad)) * float(focal_px)
+        proj = shift_columns(proj, dx)
+        amb = shift_columns(amb, dx) if np.any(amb) else amb
     if speckle_contrast > 0:
         k = 1.0 / speckle_contrast ** 2
         proj = proj * rng.gamma(k, 1.0 / k, proj.shape)
-    lam = np.maximum((np.asarray(rate_ambient, dtype=np.float64) + proj) * exposure.time_s, 0.0)
+    lam = np.maximum((amb + proj) * exposure.time_s, 0.0)
     electrons = rng.poisson(lam).astype(np.float64)
     if model.read_noise_e > 0:
         electrons += rng.normal(0.0, model.read_noise_e, lam.shape)
