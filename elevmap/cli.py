@@ -78,15 +78,27 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("simulate", help="simulate a D435: capture sets on the paper's grid, or a walk",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="Simulate a D435 with the reference simulation of the paper's model.\n\n"
-                                   "  elevmap simulate --grid paper [--frames 100] --out DIR\n"
+                       description="Simulate a D435 with the reference simulation of the paper's model (default) or\n"
+                                   "the physical D435 (--sensor stereo: projector, infrared pair, D4 matcher).\n\n"
+                                   "  elevmap simulate --grid paper [--frames 100] [--sensor stereo] --out DIR\n"
                                    "      a capture set (d435-captures/1): boards 0.60 x 0.90 m before a wall at 3 m,\n"
                                    "      0.4 to 2.1 m every 0.1 m by 0 to 75 deg every 15 deg (108 captures)\n"
-                                   "  elevmap simulate --walk SCENE [--frames N] [--drift] --rrd PATH\n"
+                                   "  elevmap simulate --walk SCENE [--frames N] [--drift] [--sensor stereo]\n"
+                                   "                   --rrd PATH\n"
                                    "      a robot walking through SCENE (demo, stairs, boxes, slope, rough), mapped\n"
-                                   "      and recorded for `elevmap replay`")
+                                   "      and recorded for `elevmap replay`\n"
+                                   "  elevmap simulate --sensor stereo --validate [DIR] [--json PATH]\n"
+                                   "      the physical D435's validation figures next to their targets; with DIR, the\n"
+                                   "      folder of real D435 recordings, also the comparisons with them")
     p.add_argument("--grid", choices=["paper"], help="capture set on the paper's grid")
     p.add_argument("--walk", metavar="SCENE", help="a walk through SCENE")
+    p.add_argument("--sensor", choices=["reference", "stereo"], default="reference",
+                   help="reference (the paper's model; default) or stereo (the physical D435)")
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="matcher preset of --sensor stereo: default or high_accuracy (default: default)")
+    p.add_argument("--validate", nargs="?", const="", default=None, metavar="DIR",
+                   help="with --sensor stereo: print the validation figures (DIR: real recordings to compare with)")
+    p.add_argument("--json", metavar="PATH", help="the validation figures as JSON (with --validate)")
     p.add_argument("--frames", type=int, default=None, help="frames per capture (100) or of the walk (all)")
     p.add_argument("--out", metavar="DIR", help="capture-set folder (with --grid)")
     p.add_argument("--rrd", metavar="PATH", help="recording of the walk (with --walk)")
@@ -103,16 +115,23 @@ def build_parser() -> argparse.ArgumentParser:
                                    "and feed the same frames to several mappers; score each final map against the\n"
                                    "true terrain (RMSE, 95th percentile, NLL, 1/2-sigma coverage, mean sigma, step\n"
                                    "edges and flat ground, known cells, time per frame), also over the cells every\n"
-                                   "mapper knows (common) and at equal coverage (matched: each mapper's most confident\n"
-                                   "cells, as many as the mapper that knows fewest).\n\n"
+                                   "mapper knows (common) and at equal coverage (matched: each mapper's most\n"
+                                   "confident cells, as many as the mapper that knows fewest). --reality stereo:\n"
+                                   "the physical D435 makes the walk's depth instead (no sim effects).\n\n"
                                    "mappers: paper (the paper's model, full covariance propagation), constant\n"
                                    "  (2 cm), quadratic (elevation_mapping_cupy: 0.05 z^2), anybotics_d435\n"
                                    "  (ANYbotics' D435 preset), paper_capped (the paper's model with the per-frame\n"
                                    "  information cap --cap)\n"
-                                   "sim effects (noise_model.sim.effects), NAME[:KEY=VALUE[:KEY=VALUE]] comma-separated,\n"
-                                   "or a gap report (elevmap gap --json PATH): its selected effects as fitted:\n")
+                                   "sim effects (noise_model.sim.effects), NAME[:KEY=VALUE[:KEY=VALUE]]\n"
+                                   "comma-separated, or a gap report (elevmap gap --json PATH): its selected effects\n"
+                                   "as fitted:\n")
     p.description_tail = _effects_help
     p.add_argument("--scene", default="stairs", help="stairs, boxes, slope, rough or demo (default: stairs)")
+    p.add_argument("--reality", choices=["reference", "stereo"], default="reference",
+                   help="what makes the walk's depth: reference (the paper's model plus --sim-effects; default) "
+                        "or stereo (the physical D435, no effects)")
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="matcher preset of --reality stereo: default or high_accuracy (default: default)")
     p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
     p.add_argument("--sim-effects", default=None, metavar="NAMES|GAP.json",
                    help="effects added to the simulated depth, or a gap report's fitted effects")
@@ -130,13 +149,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
-    p = sub.add_parser("gap", help="sim-to-real gap: where the paper's model misses real captures, which effect explains it",
+    p = sub.add_parser("gap", help="sim-to-real gap: where the paper's model misses real captures, which effect "
+                                   "explains it",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
                        description="Compare a real capture set (d435-captures/1) with the reference simulation of the\n"
-                                   "paper's model: WHERE (statistic x distance/angle/image cell/region, normalised by the\n"
-                                   "real-vs-real noise floor), WHICH effect explains it (forward selection on fit captures,\n"
-                                   "validated on held-out captures, ablation), HOW FAR the held-out gap shrinks.\n\n"
-                                   "  elevmap gap REAL_CAPTURES --json gap.json [--rrd gap.rrd] [--heldout IDS|auto|none]\n"
+                                   "paper's model: WHERE (statistic x distance/angle/image cell/region, normalised by\n"
+                                   "the real-vs-real noise floor), WHICH effect explains it (forward selection on fit\n"
+                                   "captures, validated on held-out captures, ablation), HOW FAR the held-out gap\n"
+                                   "shrinks.\n\n"
+                                   "  elevmap gap REAL_CAPTURES --json gap.json [--rrd gap.rrd]\n"
+                                   "              [--heldout IDS|auto|none]\n"
                                    "  elevmap gap --selftest [--jobs 2]\n"
                                    "  elevmap gap --realdata DIR --json real.json")
     p.add_argument("real", metavar="REAL_CAPTURES", nargs="?", help="capture-set folder (captures.json)")
@@ -159,17 +181,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("characterize", help="your own D435 noise model from a capture set (the paper's method)",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description=textwrap.fill("Characterise a depth camera as Ahn et al. (2019) did: find the planar target in "
-                                   "each capture (bilateral filter, Canny edges, the board's quadrilateral), measure "
-                                   "axial noise (pixel-wise temporal std about a fitted plane), lateral noise (left "
-                                   "and right edges), the plane-fit residual and the systematic error against the "
-                                   "measured distance with eq. (1); fit sigma_z(z, theta) in the paper's form and "
-                                   "sigma_L, sigma_R (90th percentiles). Writes the report, the fitted model "
-                                   "(<json stem>.model.json, read by noise_model.SensorModel.load) and the paper's "
-                                   "figures (PNG, rerun).", 100) + "\n\n" + PROTOCOL)
+                       description=textwrap.fill(
+                           "Characterise a depth camera as Ahn et al. (2019) did: find the planar target in "
+                           "each capture (bilateral filter, Canny edges, the board's quadrilateral), measure "
+                           "axial noise (pixel-wise temporal std about a fitted plane), lateral noise (left "
+                           "and right edges), the plane-fit residual and the systematic error against the "
+                           "measured distance with eq. (1); fit sigma_z(z, theta) in the paper's form and "
+                           "sigma_L, sigma_R (90th percentiles). Writes the report, the fitted model "
+                           "(<json stem>.model.json, read by noise_model.SensorModel.load) and the paper's "
+                           "figures (PNG, rerun).", 100) + "\n\n" + PROTOCOL)
     p.add_argument("captures", metavar="CAPTURES", help="capture-set folder (captures.json, format d435-captures/1)")
     p.add_argument("--json", metavar="PATH", required=True, help="the report")
-    p.add_argument("--model", metavar="PATH", help="the fitted model (default: <json stem>.model.json beside the report)")
+    p.add_argument("--model", metavar="PATH",
+                   help="the fitted model (default: <json stem>.model.json beside the report)")
     p.add_argument("--rrd", metavar="PATH", help="rerun recording of the figures")
     p.add_argument("--figures", metavar="DIR", help="folder for the PNG figures (Fig. 2, 3, 4, lateral noise)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
@@ -177,13 +201,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("bench", help="time the numba kernels against their NumPy references",
                        description="Median per-frame time of each compiled kernel after warm-up, next to its "
-                                   "NumPy reference measured in the same run.")
+                                   "NumPy reference measured in the same run; the physical D435 (stereo) next "
+                                   "to its time budget.")
     p.add_argument("--frames", type=int, default=200, help="timed frames per kernel and size (default: 200)")
     p.add_argument("--reference-frames", type=int, default=10,
                    help="timed frames of the NumPy references (default: 10)")
     p.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
     p.add_argument("--only", default=None, metavar="GROUPS",
-                   help="comma-separated subset of: noise, mapper, move_to, height_scan, first_frame, render")
+                   help="comma-separated subset of: noise, mapper, move_to, height_scan, first_frame, render, stereo")
     p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
@@ -312,6 +337,10 @@ def _cmd_bench(args) -> int:
 
 
 def _cmd_simulate(args) -> int:
+    if args.validate is not None:
+        return _cmd_validate(args)
+    if args.json:
+        raise ValueError("--json goes with --validate")
     if (args.grid is None) == (args.walk is None):
         raise ValueError("give exactly one of --grid paper and --walk SCENE")
     try:
@@ -320,6 +349,9 @@ def _cmd_simulate(args) -> int:
         raise ValueError(f"--size must be WIDTHxHEIGHT, got {args.size!r}") from None
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
+    if args.preset is not None and args.sensor != "stereo":
+        raise ValueError("--preset goes with --sensor stereo")
+    preset = args.preset or "default"
     if args.grid:
         from .commands.simulate import simulate_capture_set
 
@@ -327,8 +359,9 @@ def _cmd_simulate(args) -> int:
             raise ValueError("--grid needs --out DIR")
         cs = simulate_capture_set(args.out, "paper", n_frames=args.frames or 100, width=width, height=height,
                                   kind=args.kind, seed=args.seed, overwrite=args.overwrite,
-                                  show_progress=not args.no_progress)
-        print(f"wrote {len(cs.captures)} captures of {args.frames or 100} frames ({width}x{height}) to {args.out}")
+                                  show_progress=not args.no_progress, sensor=args.sensor, preset=preset)
+        print(f"wrote {len(cs.captures)} captures of {args.frames or 100} frames ({width}x{height}, {args.sensor} "
+              f"sensor) to {args.out}")
         return 0
     from .pipeline import MappingConfig, run_mapping
     from .sources.simulated import SimulatedWalk
@@ -337,12 +370,30 @@ def _cmd_simulate(args) -> int:
         raise ValueError("--walk needs --rrd PATH")
     _check_outputs({"--rrd": args.rrd}, args.overwrite)
     src = SimulatedWalk(args.walk, n_frames=args.frames, seed=args.seed, width=width, height=height,
-                        drift=args.drift)
+                        drift=args.drift, sensor=args.sensor, preset=preset)
     summary = run_mapping(src, MappingConfig(), rrd_path=args.rrd, total=len(src),
                           show_progress=not args.no_progress, notes=f"elevmap simulate --walk {args.walk}")
     _print_summary(summary)
     print(f"wrote {args.rrd}; replay it with: elevmap replay {args.rrd}")
     return 0
+
+
+def _cmd_validate(args) -> int:
+    """``elevmap simulate --sensor stereo --validate [DIR] [--json PATH]``."""
+    from .commands.simulate import validate_stereo
+
+    if args.sensor != "stereo":
+        raise ValueError("--validate checks the physical D435: give --sensor stereo")
+    if args.grid or args.walk or args.out or args.rrd:
+        raise ValueError("--validate takes no --grid, --walk, --out or --rrd")
+    if args.frames is not None and args.frames < 1:
+        raise ValueError("--frames must be >= 1")
+    realdata = args.validate or None
+    _check_outputs({"--json": args.json}, args.overwrite, inputs=[realdata] if realdata else [])
+    status = validate_stereo(realdata, args.json, args.frames)
+    if args.json:
+        print(f"wrote {args.json}")
+    return status
 
 
 def _cmd_compare(args) -> int:
@@ -358,10 +409,13 @@ def _cmd_compare(args) -> int:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise ValueError(f"--size must be WIDTHxHEIGHT, got {args.size!r}") from None
+    if args.preset is not None and args.reality != "stereo":
+        raise ValueError("--preset goes with --reality stereo")
     report = run_compare(args.scene, args.frames, seed=args.seed, sim_effects=args.sim_effects,
                          mappers=args.mappers, cap=DEFAULT_CAP if args.cap is None else args.cap, width=width,
                          height=height, rrd_path=args.rrd, show_progress=not args.no_progress,
-                         max_variance=COMPARE_MAX_VARIANCE if args.max_variance is None else args.max_variance)
+                         max_variance=COMPARE_MAX_VARIANCE if args.max_variance is None else args.max_variance,
+                         reality=args.reality, preset=args.preset or "default")
     report = json_ready(report)
     write_json_atomic(args.json, report)
     print(format_table(report))

@@ -2,7 +2,10 @@
 
 Speed is measured here, never in the test suite. Each record is the median over many frames after
 warm-up (numba compilation excluded), with the NumPy reference measured in the same run on the same
-frames, so ratios are comparable across machines.
+frames, so ratios are comparable across machines. The physical D435 (``stereo``: render both infrared
+images and the projector's view, sensor noise, matching) has no NumPy reference of the whole chain
+(its stages' references are compared in the tests); its records carry the time each frame may take,
+``target_ms`` (:data:`STEREO_TARGET_MS`), instead.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from ..map import queries
 from ..map.elevation_map import ElevationMap
 from ..mapper import Camera, Mapper
 
-__all__ = ["bench_scene", "floor_scene", "run_bench", "format_table", "GROUPS"]
+__all__ = ["bench_scene", "floor_scene", "run_bench", "format_table", "GROUPS", "STEREO_TARGET_MS"]
 
 SIZES = ((848, 480), (424, 240))
 
@@ -58,8 +61,12 @@ def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
     return 1e3 * float(np.median(times))
 
 
-GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame", "render")
+GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame", "render", "stereo")
 MAPPER_SIZES = ((1280, 720), (848, 480), (424, 240))
+#: The physical D435's time budget per frame [ms] at each size (width, height) on a 2-core machine.
+STEREO_TARGET_MS = {(424, 240): 150.0, (848, 480): 600.0}
+#: Timed frames of the physical D435 per size, at most (a frame takes a tenth of a second or more).
+STEREO_MAX_FRAMES = 10
 
 
 def floor_scene(width: int, height: int, seed: int = 0):
@@ -165,6 +172,37 @@ def _bench_render(frames, n, bar):
             _record("render", 848, 480, "numpy", ref, hits, 1, 1, scene="stairs")]
 
 
+def _bench_stereo(frames, n, bar):
+    """The physical D435 per frame at 424x240 and 848x480: a camera 0.45 m up, pitched 30 deg down,
+    over the floor and a 0.3 m box (render at the pose, then sensor noise and matching)."""
+    from noise_model.sim import Box
+    from noise_model.sim.stereo import StereoD435
+
+    scene = Scene([Box(centre=(1.5, 0.2, 0.15), size=(0.4, 0.4, 0.3))], ground_z=0.0)
+    T = camera_extrinsics((0.0, 0.0, 0.45), pitch_down_deg=30.0)
+    out = []
+    for (width, height), target in STEREO_TARGET_MS.items():
+        cam = StereoD435(width, height, nthreads=n)
+        rng = np.random.default_rng(0)
+        parts = {"render": [], "match": []}
+
+        def frame():
+            t0 = time.perf_counter()
+            ir = cam.render(scene, T)
+            t1 = time.perf_counter()
+            cam.frame(ir, rng)
+            parts["render"].append(t1 - t0)
+            parts["match"].append(time.perf_counter() - t1)
+
+        nf = min(frames, STEREO_MAX_FRAMES)
+        ms = _median_ms(frame, nf, 1, bar)
+        valid = int((cam.frame(cam.render(scene, T), rng).depth > 0).sum())
+        out.append(_record("stereo", width, height, "numba", ms, valid, nf, n, target_ms=target,
+                           render_ms=round(1e3 * float(np.median(parts["render"][-nf:])), 4),
+                           noise_and_match_ms=round(1e3 * float(np.median(parts["match"][-nf:])), 4)))
+    return out
+
+
 _FIRST_FRAME = r"""
 import time
 t0 = time.perf_counter()
@@ -210,7 +248,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     ----------
     frames, reference_frames : int
         Timed calls per record for the numba kernels / the NumPy references (the mapper's NumPy
-        reference takes at most 3: it needs about a second per 848x480 frame).
+        reference takes at most 3: it needs about a second per 848x480 frame; the physical D435 at
+        most :data:`STEREO_MAX_FRAMES`).
     nthreads : int, optional
         numba threads (all by default).
     groups : iterable of str
@@ -220,7 +259,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     -------
     dict
         ``{"results": [{"name", "width", "height", "impl", "median_ms", "points_per_s", "frames",
-        "threads", ...}, ...], "machine": {...}}``; ``first_frame_*`` records carry ``seconds``.
+        "threads", ...}, ...], "machine": {...}}``; ``first_frame_*`` records carry ``seconds``, ``stereo``
+        records ``target_ms``, ``render_ms`` and ``noise_and_match_ms`` (points: its valid pixels).
     """
     from tqdm import tqdm
 
@@ -233,7 +273,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     total = (("noise" in groups) * len(SIZES) * (frames + reference_frames)
              + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
              + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
-             + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1))
+             + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1)
+             + ("stereo" in groups) * len(STEREO_TARGET_MS) * min(frames, STEREO_MAX_FRAMES))
     results = []
     with tqdm(total=total, desc="bench", unit="call", disable=not show_progress, leave=False) as bar:
         if "noise" in groups:
@@ -248,6 +289,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
             results += _bench_first_frame(bar)
         if "render" in groups:
             results += _bench_render(frames, n, bar)
+        if "stereo" in groups:
+            results += _bench_stereo(frames, n, bar)
     return {"results": results, "machine": machine_info(n)}
 
 
@@ -285,8 +328,13 @@ def format_table(report: dict) -> str:
         ref = next((x for x in rows if x["name"] == r["name"] and x["width"] == r["width"]
                     and x["height"] == r["height"] and x["impl"] == "numpy"), None)
         speed = f"{ref['median_ms'] / r['median_ms']:.1f}x" if ref and r["impl"] != "numpy" else ""
+        if "target_ms" in r:
+            speed = f"<= {r['target_ms']:.0f}"
         pps = "" if r.get("points_per_s") is None else f"{r['points_per_s'] / 1e6:.2f}"
         lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{r['median_ms']:>11.3f}{pps:>11}{speed:>10}")
+    if any("target_ms" in r for r in rows):
+        lines.append("stereo: the physical D435, one frame (render, sensor noise, matching); "
+                     "last column: its budget [ms]")
     m = report["machine"]
     lines.append(f"machine: {m['cpu']}, {m['cores']} cores, {m['threads']} numba threads ({m['threading_layer']}),"
                  f" numba {m['numba']}, numpy {m['numpy']}")

@@ -1,9 +1,12 @@
 """``elevmap compare``: one simulated walk, the same frames through several mappers, scored against the truth.
 
 Does the paper's noise model make the map better, and can its variances be trusted? A simulated D435
-walks through a scene (:class:`elevmap.sources.simulated.SimulatedWalk`: the reference simulation of
-the paper's model, plus optional effects of :mod:`noise_model.sim.effects` that make "reality" harder than
-the model). The frames are rendered once and fed, unchanged, to each mapper:
+walks through a scene (:class:`elevmap.sources.simulated.SimulatedWalk`). Its reality is either the
+reference simulation of the paper's model, plus optional effects of :mod:`noise_model.sim.effects` that
+make it harder than the model (``reality="reference"``, the default), or the physical D435 of
+:mod:`noise_model.sim.stereo` (``reality="stereo"``: projector, infrared pair and D4 matcher, a noise
+nobody wrote as a formula; it takes no effects). The frames are rendered once and fed, unchanged, to
+each mapper:
 
 * ``paper``: the paper's model with full covariance propagation (``Camera`` without a
   ``variance_model``: the numba kernel);
@@ -30,6 +33,7 @@ cells away and score it on its near cells only.
 Report (JSON, NaN written as null)::
 
     {"scene": str, "frames": int, "seed": int, "width": int, "height": int,
+     "reality": "reference" | "stereo", "preset": str | null (the stereo matcher's preset),
      "sim_effects": [{"name": str, "params": {...}}, ...], "cap": float,
      "map": {"length_m", "resolution_m", "visibility_cleanup", "follow", "fusion": {...}},
      "frames_digest": sha256 hex,
@@ -83,13 +87,16 @@ from ..map.fusion import FusionParams
 from ..mapper import Camera, Mapper
 from ..pipeline import MappingConfig, map_error
 
-__all__ = ["MAPPERS", "SCENES", "DEFAULT_CAP", "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "run_compare", "render_walk", "parse_effects", "effects_help",
-           "parse_mappers", "format_table", "MapperSpec", "mapper_specs", "json_ready", "frames_digest", "most_confident"]
+__all__ = ["MAPPERS", "SCENES", "REALITIES", "DEFAULT_CAP", "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "run_compare",
+           "render_walk", "parse_effects", "effects_help", "parse_mappers", "format_table", "MapperSpec",
+           "mapper_specs", "json_ready", "frames_digest", "most_confident"]
 
 #: Mappers in report order.
 MAPPERS = ("paper", "constant", "quadratic", "anybotics_d435", "paper_capped")
 #: Scenes of a comparison (those of :class:`elevmap.sources.simulated.SimulatedWalk`).
 SCENES = ("stairs", "boxes", "slope", "rough", "demo")
+#: Simulated realities: the reference simulation of the paper's model, or the physical D435.
+REALITIES = ("reference", "stereo")
 #: The per-frame information cap of ``paper_capped``: a frame adds to a cell at most the information of
 #: n_eff = 1 average point. Why 1: (a) physics: with the D435's error correlation of about 3 px at
 #: 848 x 480, a 4 cm cell at 1 m holds about one independent sample per frame (docs/depth-effects.md,
@@ -288,7 +295,8 @@ def parse_mappers(spec) -> tuple[str, ...]:
 # frames
 # ---------------------------------------------------------------------------------------------
 def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 0, effects=(),
-                width: int = 424, height: int = 240, show_progress: bool = False):
+                width: int = 424, height: int = 240, show_progress: bool = False, reality: str = "reference",
+                preset: str = "default"):
     """Render a simulated walk once.
 
     Parameters
@@ -300,9 +308,13 @@ def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 
     seed : int
         Seed of the scene, the noise and the effects.
     effects : sequence of Effect
-        Extra depth effects on top of the paper's reference noise.
+        Extra depth effects on top of the paper's reference noise (reference reality only).
     width, height : int
         D435 depth mode [px].
+    reality : {"reference", "stereo"}
+        The reference simulation of the paper's model, or the physical D435.
+    preset : str
+        Matcher preset of the physical D435.
 
     Returns
     -------
@@ -328,12 +340,21 @@ def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 
     for e in effects:
         if not callable(e):
             raise ValueError(f"effects must be callables (noise_model.sim.effects), got {e!r}")
+    _check_reality(reality, effects)
     walk = SimulatedWalk(scene, n_frames=None if n_frames is None else int(n_frames), seed=int(seed),
-                         width=int(width), height=int(height), effects=effects or None)
+                         width=int(width), height=int(height), effects=effects or None, sensor=reality,
+                         preset=preset)
     frames = list(tqdm(walk, total=len(walk), desc="rendering", unit="frame", disable=not show_progress))
     if n_frames is not None and len(frames) < n_frames:
         raise ValueError(f"the {scene} walk has only {len(frames)} frames, asked for {n_frames}")
     return frames, walk
+
+
+def _check_reality(reality, effects) -> None:
+    if reality not in REALITIES:
+        raise ValueError(f"unknown reality {reality!r}; realities: {', '.join(REALITIES)}")
+    if reality == "stereo" and effects:
+        raise ValueError("the stereo reality makes its own noise: it takes no sim effects")
 
 
 def _digest_update(h, frame: Frame) -> None:
@@ -461,7 +482,8 @@ def _map_frames(frames, specs, config: MappingConfig, *, nthreads=None, show_pro
 def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int = 0, sim_effects=None,
                 mappers=None, cap: float = DEFAULT_CAP, width: int = 424, height: int = 240,
                 config: MappingConfig | None = None, max_variance: float | None = COMPARE_MAX_VARIANCE,
-                rrd_path=None, show_progress: bool = True, nthreads: int | None = None) -> dict:
+                rrd_path=None, show_progress: bool = True, nthreads: int | None = None, reality: str = "reference",
+                preset: str = "default") -> dict:
     """One simulated walk, the same frames through several mappers, each scored against the truth.
 
     Parameters
@@ -491,6 +513,11 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         Progress bars.
     nthreads : int, optional
         numba threads.
+    reality : {"reference", "stereo"}
+        What makes the walk's depth: the reference simulation of the paper's model (default), or the
+        physical D435 (no ``sim_effects`` then).
+    preset : str
+        Matcher preset of the physical D435 ("default", "high_accuracy").
 
     Returns
     -------
@@ -505,11 +532,12 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     names = parse_mappers(mappers)
     specs = mapper_specs(names, cap, config.fusion)
     effects = parse_effects(sim_effects)
+    _check_reality(reality, effects)
     if scene not in SCENES:
         raise ValueError(f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
     check_outputs({"rrd_path": rrd_path}, overwrite=True)       # the command line has refused existing files
     t0 = time.perf_counter()
-    frames, walk = render_walk(scene, n_frames, seed, effects, width, height, show_progress)
+    frames, walk = render_walk(scene, n_frames, seed, effects, width, height, show_progress, reality, preset)
     render_ms = 1e3 * (time.perf_counter() - t0) / max(1, len(frames))
     truth = _CachedTruth(walk.truth_height)
     digest = frames_digest(frames)
@@ -531,7 +559,8 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         common = _common_scores(maps, truth)
         matched = _matched_scores(maps, truth)
         report = {"scene": scene, "frames": len(frames), "seed": int(seed), "width": int(width),
-                  "height": int(height), "sim_effects": [{"name": e.name, "params": dict(e.params)} for e in effects],
+                  "height": int(height), "reality": reality, "preset": preset if reality == "stereo" else None,
+                  "sim_effects": [{"name": e.name, "params": dict(e.params)} for e in effects],
                   "cap": _check_cap(cap),
                   "map": {"length_m": config.length_m, "resolution_m": config.resolution_m,
                           "visibility_cleanup": config.visibility_cleanup, "follow": config.follow,
@@ -628,8 +657,11 @@ def format_table(report: dict) -> str:
     """The report as a plain-text table (mm, %, ms)."""
     eff = ", ".join(f"{e['name']}({', '.join(f'{k}={v:g}' for k, v in e['params'].items() if v is not None)})"
                     for e in report["sim_effects"]) or "none"
+    reality = report.get("reality", "reference")
+    if reality == "stereo":
+        reality += f" (preset {report.get('preset')})"
     head = (f"scene {report['scene']}, {report['frames']} frames {report['width']}x{report['height']}, "
-            f"seed {report['seed']}, sim effects: {eff}, paper_capped cap {report['cap']:g}")
+            f"seed {report['seed']}, reality {reality}, sim effects: {eff}, paper_capped cap {report['cap']:g}")
     cols = ("mapper", "RMSE", "p95|e|", "NLL", "cov1s", "cov2s", "mean s", "edge", "flat", "known", "ms/fr",
             "| common:", "RMSE", "NLL", "cov2s", "| matched:", "RMSE", "NLL", "cov2s")
     rows = []

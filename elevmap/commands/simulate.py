@@ -1,10 +1,15 @@
-"""``elevmap simulate``: capture sets on the paper's grid, and recordings of simulated walks.
+"""``elevmap simulate``: capture sets on the paper's grid, recordings of simulated walks, and the
+validation of the physical D435.
 
-Capture sets follow docs/capture-set-format.md (``d435-captures/1``). Each capture's frames are the
-reference simulation of the paper's model of its own ``captures.json`` entry
+Capture sets follow docs/capture-set-format.md (``d435-captures/1``). By default each capture's frames
+are the reference simulation of the paper's model of its own ``captures.json`` entry
 (:func:`noise_model.sim.simulate_target` of :meth:`noise_model.sim.CaptureGeometry.from_capture_set_entry`),
 so that a characterisation of them should give back the paper's coefficients, and the gap diagnosis
-simulates exactly what was written.
+simulates exactly what was written. With ``sensor="stereo"`` the physical D435 of
+:mod:`noise_model.sim.stereo` sees the same targets (:func:`noise_model.sim.targets.simulate_target_stereo`):
+a reality nobody wrote as a formula, for the characterisation and the gap tool to measure.
+:func:`validate_stereo` prints the physical model's validation figures next to their targets
+(docs/physical-d435.md).
 """
 
 from __future__ import annotations
@@ -15,10 +20,15 @@ import numpy as np
 
 import noise_model as nm
 from noise_model.sim import CaptureGeometry, simulate_target
+from noise_model.sim.targets import simulate_target_stereo
 
 from ..fileio import atomic_output, check_outputs
 
-__all__ = ["paper_grid", "simulate_capture_set", "BOARD_WIDTH_M", "BOARD_HEIGHT_M", "BACKGROUND_M"]
+__all__ = ["paper_grid", "simulate_capture_set", "validate_stereo", "SENSORS", "BOARD_WIDTH_M", "BOARD_HEIGHT_M",
+           "BACKGROUND_M"]
+
+#: What makes a capture set's frames: the reference simulation of the paper's model, or the physical D435.
+SENSORS = ("reference", "stereo")
 
 #: The planar target of a simulated board capture (the capture-set spec's example) [m].
 BOARD_WIDTH_M = 0.60
@@ -38,8 +48,9 @@ def _capture_id(kind: str, distance: float, yaw: float) -> str:
 
 def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 424, height: int = 240,
                          kind: str = "board", seed: int = 0, model: nm.SensorModel = nm.D435,
-                         overwrite: bool = False, show_progress: bool = True):
-    """Write a capture set rendered with the reference simulation of the paper's model.
+                         overwrite: bool = False, show_progress: bool = True, sensor: str = "reference",
+                         preset: str = "default"):
+    """Write a capture set rendered with the reference simulation of the paper's model, or the physical D435.
 
     Parameters
     ----------
@@ -56,7 +67,13 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
     seed : int
         Seed of the noise.
     model : noise_model.SensorModel
-        The noise model simulated (the paper's by default).
+        The noise model simulated by the reference sensor (the paper's by default); its intrinsics and
+        baseline are the camera's for either sensor.
+    sensor : {"reference", "stereo"}
+        The reference simulation (default), or the physical D435 (each capture rendered once, its
+        frames matched with fresh sensor noise; the size must be a D435 depth mode).
+    preset : str
+        Matcher preset of the physical D435 ("default", "high_accuracy").
 
     Returns
     -------
@@ -74,13 +91,25 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
         raise ValueError(f"n_frames must be >= 1, got {n_frames!r}")
     if kind not in ("board", "wall"):
         raise ValueError(f"kind must be 'board' or 'wall', got {kind!r}")
+    if sensor not in SENSORS:
+        raise ValueError(f"unknown sensor {sensor!r}; sensors: {', '.join(SENSORS)}")
+    stereo = None
+    if sensor == "stereo":
+        from noise_model.sim.stereo import StereoD435
+        from noise_model.sim.stereo.matcher import preset as matcher_preset
+
+        matcher_preset(preset).check_size(width, height)        # the preset and the size, before anything else
+        stereo = StereoD435(int(width), int(height), K=model.intrinsics(width, height), baseline_m=model.baseline_m,
+                            matcher=preset)
     out = Path(out)
     if (out / "captures.json").exists() and not overwrite:
         raise ValueError(f"{out} already holds a capture set; pass overwrite=True (--overwrite) to replace it")
     check_outputs({f"capture {_capture_id(kind, d, y)}": out / f"{_capture_id(kind, d, y)}.npy" for d, y in settings},
                   overwrite, create_folders=True)
     K = model.intrinsics(width, height)
-    camera = {"model": "D435 (simulated: reference simulation of Ahn et al. 2019)", "width": int(width),
+    what = ("reference simulation of Ahn et al. 2019" if stereo is None
+            else f"physical active-stereo model, matcher preset {preset}")
+    camera = {"model": f"D435 (simulated: {what})", "width": int(width),
               "height": int(height), "fx": float(K[0, 0]), "fy": float(K[1, 1]), "ppx": float(K[0, 2]),
               "ppy": float(K[1, 2]), "depth_scale": 0.001, "baseline_m": model.baseline_m}
     rng = np.random.default_rng(seed)
@@ -95,17 +124,54 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
             entry = {"id": cid, "depth": f"{cid}.npy", "target": target,
                      "background_m": BACKGROUND_M if kind == "board" else None}
             geometry = CaptureGeometry.from_capture_set_entry(camera, entry)
-            frames = simulate_target(geometry, int(n_frames), rng, model)
+            if stereo is None:
+                frames = simulate_target(geometry, int(n_frames), rng, model)
+            else:
+                frames = simulate_target_stereo(geometry, int(n_frames), rng, camera=stereo)
             path = out / f"{cid}.npy"
             with atomic_output(path, suffix=".npy") as tmp:
                 with open(tmp, "wb") as fh:
                     np.save(fh, frames)
             written.append(path)
             entries.append((entry, None))
-        return write_capture_set(out, camera, entries, overwrite=True,
-                                 extra={"simulation": {"model": model.to_dict(), "seed": seed,
-                                                       "frames": int(n_frames)}})
+        simulation = ({"model": model.to_dict(), "seed": seed, "frames": int(n_frames)} if stereo is None else
+                      {"sensor": "stereo", "preset": preset, "seed": seed, "frames": int(n_frames)})
+        return write_capture_set(out, camera, entries, overwrite=True, extra={"simulation": simulation})
     except BaseException:
         for p in written:                       # no partial capture set is left behind
             p.unlink(missing_ok=True)
         raise
+
+
+def validate_stereo(realdata=None, json_path=None, n_frames: int | None = None) -> int:
+    """The physical D435's validation figures, each printed next to its target.
+
+    Runs ``noise_model.sim.stereo.validation.main`` (docs/physical-d435.md): the simulated figures,
+    and with ``realdata`` (a folder of the real D435 recordings it knows) the comparisons with them.
+
+    Parameters
+    ----------
+    realdata : path, optional
+        Folder of real recordings.
+    json_path : path, optional
+        Write the figures there (the caller has checked the path).
+    n_frames : int, optional
+        Frames per setting (the validation's own default when None).
+
+    Returns
+    -------
+    int
+        The validation's exit status.
+    """
+    from noise_model.sim.stereo import validation
+
+    if realdata is not None and not Path(realdata).is_dir():
+        raise ValueError(f"{realdata}: no such folder (the real recordings to validate against)")
+    argv = []
+    if realdata is not None:
+        argv += ["--realdata", str(realdata)]
+    if json_path is not None:
+        argv += ["--json", str(json_path)]
+    if n_frames is not None:
+        argv += ["--frames", str(int(n_frames))]
+    return int(validation.main(argv) or 0)

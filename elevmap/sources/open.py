@@ -1,15 +1,19 @@
 """Open any source from a command-line style specification.
 
-=========================  ======================================================================
-SOURCE                     what it opens
-=========================  ======================================================================
-``live`` / ``live:SERIAL`` a connected RealSense camera (848x480 at 30 fps by default)
-``FILE.bag``, ``.db3``     a RealSense SDK recording, played back without dropping frames
-``FILE.rrd``               a rerun recording with a DepthImage under a Pinhole
-``FOLDER`` (captures.json) a capture set (``d435-captures/1``): every capture's frames in turn
-``FOLDER`` (PNG files)     16-bit depth PNGs + intrinsics JSON (+ a pose file)
-``sim:SCENE``              the simulator walking a robot through SCENE (stairs, boxes, slope, rough)
-=========================  ======================================================================
+============================  ====================================================================
+SOURCE                        what it opens
+============================  ====================================================================
+``live`` / ``live:SERIAL``    a connected RealSense camera (848x480 at 30 fps by default)
+``FILE.bag``, ``.db3``        a RealSense SDK recording, played back without dropping frames
+``FILE.rrd``                  a rerun recording with a DepthImage under a Pinhole
+``FOLDER`` (captures.json)    a capture set (``d435-captures/1``): every capture's frames in turn
+``FOLDER`` (PNG files)        16-bit depth PNGs + intrinsics JSON (+ a pose file)
+``sim:SCENE``                 the simulator walking a robot through SCENE (demo, stairs, boxes,
+                              slope, rough), seen by the reference simulation of the paper's model
+``sim:SCENE?sensor=stereo``   the same walk seen by the physical D435 (projector, infrared pair, D4
+                              matcher: its noise emerges); ``&preset=high_accuracy`` selects the
+                              matcher's other preset
+============================  ====================================================================
 
 A pose file (TUM text or Open3D .log) attaches poses to any source, interpolated to each frame's
 stamp; without one a source's own poses are used, or the camera is static.
@@ -60,7 +64,8 @@ def _open(spec: str, *, intrinsics, frames, seed):
     if spec.startswith("sim:"):
         from .simulated import SimulatedWalk
 
-        return SimulatedWalk(spec.split(":", 1)[1], n_frames=frames, seed=seed)
+        scene, options = _sim_spec(spec)
+        return SimulatedWalk(scene, n_frames=frames, seed=seed, **options)
     path = Path(spec)
     if not path.exists():
         raise ValueError(f"{spec}: no such file or folder (nor 'live', 'live:SERIAL' or 'sim:SCENE')")
@@ -85,6 +90,29 @@ def _open(spec: str, *, intrinsics, frames, seed):
 
         return DepthFolderSource(path, intrinsics)
     raise ValueError(f"{spec}: a folder with neither captures.json nor depth PNGs")
+
+
+#: Options of a ``sim:SCENE?KEY=VALUE&...`` source and the SimulatedWalk argument each sets.
+_SIM_OPTIONS = {"sensor": "sensor", "preset": "preset"}
+
+
+def _sim_spec(spec: str) -> tuple[str, dict]:
+    """``sim:SCENE[?KEY=VALUE[&KEY=VALUE]]`` -> (SCENE, SimulatedWalk keyword arguments)."""
+    body = spec.split(":", 1)[1]
+    scene, _, query = body.partition("?")
+    options = {}
+    for item in filter(None, query.split("&")):
+        key, eq, value = item.partition("=")
+        if not eq or not value:
+            raise ValueError(f"{spec}: options of a sim source are KEY=VALUE, got {item!r}")
+        if key not in _SIM_OPTIONS:
+            raise ValueError(f"{spec}: unknown option {key!r} of a sim source; options: {', '.join(_SIM_OPTIONS)}")
+        if _SIM_OPTIONS[key] in options:
+            raise ValueError(f"{spec}: option {key!r} given twice")
+        options[_SIM_OPTIONS[key]] = value
+    if "preset" in options and options.get("sensor") != "stereo":
+        raise ValueError(f"{spec}: preset is an option of sensor=stereo")
+    return scene, options
 
 
 class _CaptureFrames:

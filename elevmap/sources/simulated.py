@@ -1,7 +1,9 @@
 """The simulator as a source: a robot walking through a scene, seen by a simulated D435.
 
-Frames carry the true terrain (``Frame.truth["height"]``: xy (M, 2) -> height (M,) [m]) so that
-maps can be scored against it.
+The D435 is the reference simulation of the paper's model (the default) or, with ``sensor="stereo"``,
+the physical one of :mod:`noise_model.sim.stereo` (projector, infrared pair, D4 matcher: its noise
+emerges). Frames carry the true terrain (``Frame.truth["height"]``: xy (M, 2) -> height (M,) [m]) so
+that maps can be scored against it.
 """
 
 from __future__ import annotations
@@ -13,9 +15,11 @@ from noise_model.sim import Scene, simulate_walk
 
 from ..frame import Frame
 
-__all__ = ["SimulatedWalk", "demo_scene", "SCENES"]
+__all__ = ["SimulatedWalk", "demo_scene", "SCENES", "SENSORS"]
 
 SCENES = ("demo", "stairs", "boxes", "slope", "rough")
+#: What can make a simulated walk's depth: the reference simulation or the physical D435.
+SENSORS = ("reference", "stereo")
 
 
 def demo_scene(rng: np.random.Generator) -> tuple[Scene, np.ndarray]:
@@ -44,18 +48,36 @@ class SimulatedWalk:
     rate_hz : float
         Frame rate [Hz].
     noise : {"reference", "none"}
-        The paper's model as the reference simulation defines it, or none.
+        With the reference sensor: the paper's model as the reference simulation defines it, or none.
     drift : bool
         Odometry drift: the poses reported are drifted, with their covariance.
     effects : sequence of callables, optional
-        Extra depth effects (see :func:`noise_model.sim.add_noise`).
+        Extra depth effects of the reference sensor (see :func:`noise_model.sim.add_noise`).
     path : (K, 2) array_like, optional
         Waypoints [m]; by default a straight walk through the scene along +x.
+    camera : str
+        Name of the camera in the frames.
+    sensor : {"reference", "stereo"}
+        The reference simulation (default) or the physical D435 (``noise_model.sim.stereo``; the size
+        must be a D435 depth mode; no ``noise="none"`` or effects: it makes its own noise).
+    preset : str
+        Matcher preset of the physical D435 ("default", "high_accuracy").
     """
 
     def __init__(self, scene="demo", n_frames: int | None = None, seed: int = 0, width: int = 424,
                  height: int = 240, rate_hz: float = 10.0, noise: str = "reference", drift: bool = False,
-                 effects=None, path=None, camera: str = "front"):
+                 effects=None, path=None, camera: str = "front", sensor: str = "reference", preset: str = "default"):
+        if sensor not in SENSORS:
+            raise ValueError(f"unknown sensor {sensor!r}; sensors: {', '.join(SENSORS)}")
+        if sensor == "stereo":
+            from noise_model.sim.stereo import PRESETS
+
+            if preset not in PRESETS:
+                raise ValueError(f"unknown matcher preset {preset!r}; presets: {', '.join(sorted(PRESETS))}")
+            if noise != "reference" or effects:
+                raise ValueError("the physical D435 (sensor 'stereo') makes its own noise: it takes no noise "
+                                 "'none' and no effects")
+        self.sensor, self.preset = sensor, preset
         self.rng = np.random.default_rng(seed)
         default_path = np.array([[-0.6, 0.0], [5.0, 0.0]])
         if isinstance(scene, Scene):
@@ -73,6 +95,11 @@ class SimulatedWalk:
         self.n_frames = n_frames
         self.width, self.height = int(width), int(height)
         self.K = nm.D435.intrinsics(self.width, self.height)
+        self._stereo = None
+        if sensor == "stereo":
+            from noise_model.sim.stereo import StereoD435
+
+            self._stereo = StereoD435(self.width, self.height, K=self.K, matcher=preset)   # checks the size
         self.rate_hz = float(rate_hz)
         self.noise, self.drift, self.effects, self.camera = noise, bool(drift), effects, camera
         self._len = None
@@ -94,7 +121,7 @@ class SimulatedWalk:
     def __iter__(self):
         gen = simulate_walk(self.scene, self.K, self.width, self.height, n_frames=self.n_frames, path=self.path,
                             rng=self.rng, noise=self.noise, effects=self.effects, drift=self.drift,
-                            rate_hz=self.rate_hz)
+                            rate_hz=self.rate_hz, sensor=self._stereo or "reference")
         for f in gen:
             yield Frame(f["depth"], f["K"], f["depth_scale"], f["stamp"], T_map_cam=f["T_map_cam"],
                         pose_cov=f["pose_cov"], camera=self.camera, index=f["index"],

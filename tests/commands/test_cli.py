@@ -57,7 +57,8 @@ def test_characterize_from_the_command_line(tmp_path, capsys):
 
 
 def test_characterize_help_explains_the_recording_protocol():
-    res = subprocess.run([sys.executable, "-m", "elevmap.cli", "characterize", "--help"], capture_output=True, text=True)
+    res = subprocess.run([sys.executable, "-m", "elevmap.cli", "characterize", "--help"], capture_output=True,
+                         text=True)
     assert res.returncode == 0
     for words in ("tripod", "laser distance meter", "0.4 to 2.1 m", "100 frames", "captures.json"):
         assert words in res.stdout
@@ -78,7 +79,8 @@ def test_noise_model_imports_no_io_or_visualisation():
 
 
 def test_elevmap_core_imports_no_realsense():
-    code = ("import sys, elevmap, elevmap.cli, elevmap.commands.bench; sys.exit(1 if 'pyrealsense2' in sys.modules else 0)")
+    code = ("import sys, elevmap, elevmap.cli, elevmap.commands.bench; "
+            "sys.exit(1 if 'pyrealsense2' in sys.modules else 0)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 

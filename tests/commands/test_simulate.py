@@ -36,5 +36,6 @@ def test_cli_simulate_checks_its_arguments(tmp_path, capsys):
     assert "--walk needs --rrd" in capsys.readouterr().err
     assert main(["simulate", "--walk", "nowhere", "--rrd", str(tmp_path / "w.rrd")]) == 2
     assert "unknown scene" in capsys.readouterr().err
-    assert main(["simulate", "--walk", "slope", "--frames", "2", "--rrd", str(tmp_path / "w.rrd"), "--no-progress"]) == 0
+    assert main(["simulate", "--walk", "slope", "--frames", "2", "--rrd", str(tmp_path / "w.rrd"),
+                 "--no-progress"]) == 0
     assert (tmp_path / "w.rrd").is_file()

@@ -1,7 +1,7 @@
 """Data sources: RealSense .bag/.db3, capture sets, PNG folders, pose files.
 
-Genuine recordings are read from ../shared/realdata (the ``realdata`` fixture skips where absent) and
-never copied into the project; files the tests make live in ``tmp_path``.
+Genuine recordings are read from the REALDATA folder of tests/conftest.py (the ``realdata`` fixture skips
+where it is absent) and never copied into the project; files the tests make live in ``tmp_path``.
 """
 
 from __future__ import annotations
