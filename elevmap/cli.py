@@ -99,7 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--validate", nargs="?", const="", default=None, metavar="DIR",
                    help="with --sensor stereo: print the validation figures (DIR: real recordings to compare with)")
     p.add_argument("--json", metavar="PATH", help="the validation figures as JSON (with --validate)")
-    p.add_argument("--frames", type=int, default=None, help="frames per capture (100) or of the walk (all)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="frames per capture (100), of the walk (all) or per setting of --validate")
     p.add_argument("--out", metavar="DIR", help="capture-set folder (with --grid)")
     p.add_argument("--rrd", metavar="PATH", help="recording of the walk (with --walk)")
     p.add_argument("--kind", choices=["board", "wall"], default="board", help="target of the captures")
