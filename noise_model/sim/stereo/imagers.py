@@ -33,10 +33,11 @@ Image formation (:func:`render_rates`, :func:`expose`)
   (``pointing_jitter_rad``), which moves its image sideways by f sigma_p px (:func:`shift_columns`);
   the two imagers jitter independently, so the disparity of the whole frame moves by
   N(0, 2 f^2 sigma_p^2), the frame-wide offset a real D435 shows; then the projector's share of the
-  rate times a fresh laser-speckle factor (:func:`expose`), then photo-electrons ~ Poisson(rate t) (shot noise), plus read noise N(0, sigma_read^2),
-  times gain, converted at full_well / 1023 e- per 10-bit DN, plus the black level, rounded and
-  clipped to 0..1023; the 8-bit output is the 10-bit value's top eight bits (DN // 4). Fresh noise
-  every frame; the scene, the pattern and therefore the noise-free rates do not change.
+  rate times a fresh laser-speckle factor (:func:`expose`), then photo-electrons ~ Poisson(rate t)
+  (shot noise), plus read noise N(0, sigma_read^2), times gain, converted at full_well / 1023 e- per
+  10-bit DN, plus the black level, rounded and clipped to 0..1023; the 8-bit output is the 10-bit
+  value's top eight bits (DN // 4). Fresh noise every frame; the scene, the pattern and therefore the
+  noise-free rates do not change.
 """
 
 from __future__ import annotations

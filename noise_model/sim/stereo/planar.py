@@ -1,9 +1,9 @@
 """Scenes of planes for the physical D435: walls, boards, floors at any orientation, and their ray cast.
 
-The validation of :mod:`.validation` needs the geometry of real recordings and of capture sets exactly:
-a wall fitted to a real frame (any normal, not only the vertical boards of ``noise_model.sim.Scene``), a
-floor under a camera with roll, a board pitched or yawed before a background wall. :class:`PlanarScene`
-holds such surfaces and :func:`render_planar` ray-casts them with the signature of
+The validation against real recordings (:mod:`.realdata`) needs their geometry exactly: a wall fitted
+to a real frame (any normal, not only the vertical targets of ``noise_model.sim.Scene``), a floor
+under a camera with pitch and roll, a panel ending at a vertical edge. :class:`PlanarScene` holds such
+surfaces and :func:`render_planar` ray-casts them with the signature of
 ``noise_model.sim.render_depth`` (so ``StereoD435(renderer=render_planar)`` renders them).
 
 Frames and units
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PlaneSurface", "PlanarScene", "render_planar", "capture_scene", "plane_from_camera"]
+__all__ = ["PlaneSurface", "PlanarScene", "render_planar", "plane_from_camera"]
 
 
 def _unit(v, name: str) -> np.ndarray:
@@ -188,25 +188,3 @@ def plane_from_camera(normal_cam, offset_m: float, T_map_cam=None, name: str = "
     T = np.eye(4) if T_map_cam is None else np.asarray(T_map_cam, dtype=np.float64)
     p = n * float(offset_m)                                           # the plane's point nearest the camera
     return PlaneSurface(tuple(T[:3, :3] @ n), tuple(T[:3, :3] @ p + T[:3, 3]), name=name)
-
-
-def capture_scene(geometry) -> PlanarScene:
-    """The target of a capture-set geometry (``noise_model.analysis.capture_data.CaptureGeometry``) as a scene.
-
-    The scene frame is the capture's camera frame (pose: the identity): a wall is the plane through
-    (0, 0, distance_m) with normal R e_z, a board the rectangle there with axes R e_x, R e_y
-    (R = R_y(yaw) R_x(pitch), docs/capture-set-format.md), and a background the plane z = background_m.
-    """
-    from ..targets import target_rotation
-
-    t = geometry.target
-    R = target_rotation(t["yaw_deg"], t["pitch_deg"])
-    c = (0.0, 0.0, float(t["distance_m"]))
-    if t["kind"] == "wall":
-        surfaces = [PlaneSurface(tuple(R[:, 2]), c, name="wall")]
-    else:
-        surfaces = [PlaneSurface(tuple(R[:, 2]), c, float(t["width_m"]), float(t["height_m"]), tuple(R[:, 0]),
-                                 name="board")]
-    if geometry.background_m is not None:
-        surfaces.append(PlaneSurface((0.0, 0.0, 1.0), (0.0, 0.0, float(geometry.background_m)), name="background"))
-    return PlanarScene(tuple(surfaces))

@@ -232,7 +232,7 @@ def test_disparity_to_depth():
 @pytest.mark.realdata
 def test_real_d435_pair_band_shadow_and_fill(realdata):
     """The real pair: fill near the D435's 0.92, its left band and the box's occlusion shadow in place."""
-    from noise_model.sim.stereo.validation import real_pair
+    from noise_model.sim.stereo.realdata import real_pair
 
     r = real_pair(realdata / "simsense_d435_ir_pairs")
     assert abs(r["valid_fraction_ours"] - r["valid_fraction_d435"]) < 0.05
