@@ -31,12 +31,12 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import label, median_filter
 
-from .materials import MaterialMap, Texture, Uniform, white_wall
+from .materials import MaterialMap, Uniform, concrete, white_wall
 from .pipeline import IRScene, StereoD435
 from .planar import PlanarScene, PlaneSurface, plane_from_camera, render_planar
 
 __all__ = ["real_pair", "dot_statistics", "simulated_dots", "DOT_PATCHES", "FLOOR_PATCHES", "aims_scene",
-           "aims_stretch", "aims_real_offsets", "floor_concrete", "SINGLE_PLANES", "single_plane",
+           "aims_stretch", "aims_real_offsets", "SINGLE_PLANES", "single_plane",
            "ambient_for_exposure", "read_png"]
 
 
@@ -185,17 +185,6 @@ def simulated_dots(ambient_w_m2: float = 5.0, seed: int = 0) -> dict:
 # ---------------------------------------------------------------------------------------------
 
 
-def floor_concrete() -> Texture:
-    """The concrete of the aims_slam floor: albedo 0.35 +- 60 %, fBm from 8 mm down to 2 mm (hurst 0.5).
-
-    The strength and scale are fitted to that floor's temporal sigma per depth bin (docs/physical-d435.md,
-    "aims_slam"): with the +- 35 % fBm from 16 mm of ``materials.concrete()`` the simulated floor is
-    1.4-1.6 times as noisy as the real one while the white wall beside it matches. The strength stands
-    for every static modulation of the dots fixed to the surface (albedo, polish, micro-relief).
-    """
-    return Texture("floor concrete", mean=0.35, contrast=0.60, wavelength_m=0.008, octaves=3, hurst=0.5)
-
-
 def _intrinsics(intr: dict) -> np.ndarray:
     return np.array([[intr["fx"], 0.0, intr["ppx"]], [0.0, intr["fy"], intr["ppy"]], [0.0, 0.0, 1.0]])
 
@@ -251,7 +240,7 @@ def aims_stretch(folder, n_frames: int = 16, ambient_w_m2: float = 0.05, floor_m
                  segment: str = "S1") -> dict:
     """The aims_slam static stretch simulated at its geometry and measured as its ``figures.json``.
 
-    Scene: :func:`aims_scene` (a white wall, albedo 0.8, and a concrete floor, :func:`floor_concrete`
+    Scene: :func:`aims_scene` (a white wall, albedo 0.8, and a concrete floor, ``materials.concrete()``
     unless ``floor_material`` says otherwise), ambient ``ambient_w_m2``, ``n_frames`` frames of a static
     camera. Per plane (wall, floor): the pixels of the segment's ``roi_xyxy`` that see that plane, valid
     in >= 90 % of the frames (the real figures' rule); per depth bin of ``plane_temporal_bins`` (binned
@@ -274,7 +263,7 @@ def aims_stretch(folder, n_frames: int = 16, ambient_w_m2: float = 0.05, floor_m
     folder = Path(folder)
     fig = json.loads((folder / "figures.json").read_text())
     scene, T, K = aims_scene(fig, segment)
-    ground = floor_concrete() if floor_material is None else floor_material
+    ground = concrete() if floor_material is None else floor_material
     cam = StereoD435(640, 480, K=K, materials=MaterialMap(default=white_wall(), ground=ground),
                      ambient_w_m2=ambient_w_m2, renderer=render_planar)
     ir = cam.render(scene, T, with_truth=True)
