@@ -85,8 +85,8 @@ class DotPattern:
     hfov_deg, vfov_deg : float
         Field of view the dots cover [deg].
     dot_sigma_rad : float
-        Angular standard deviation of one dot [rad] (2 mrad: with the lens blur and the pixel a dot
-        of about 1 px sigma at 848x480, as on the D435's own infrared images).
+        Angular standard deviation of one dot [rad] (2 mrad: with the lens blur and the pixel, the
+        dot profiles of the D435's own infrared images; docs/physical-d435.md).
     power_w : float
         Total optical power in the dots [W] (laser power 150 mW, the default setting).
     power_spread : float
