@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -297,7 +298,8 @@ def aims_stretch(folder, n_frames: int = 16, ambient_w_m2: float = 0.05, floor_m
                          "sim_sigma_d_px": sim * 1e-3 * fB / zm ** 2})
         every = roi & (D > 0).all(axis=0)
         offsets = [float(np.mean(D[k][every] - zt[every])) for k in range(len(frames))]
-        with np.errstate(invalid="ignore"):
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)            # pixels never valid: NaN
             mean = np.nanmean(Dv, axis=0) if len(frames) > 1 else Dv[0]
         single = fit_plane_ransac(Dv[0], K, roi)
         mean_fit = fit_plane_ransac(np.where(ok, mean, np.nan), K, roi)
@@ -342,7 +344,8 @@ def aims_real_offsets(folder, segment: str = "S1", inlier_rel: float = 0.03) -> 
     fB = fig["intrinsics_estimate_640x480"]["fx"] * 0.050
     D = np.stack([read_png(folder / "depth" / f"{k}.png").astype(np.float64) * 1e-3 for k in range(f0, f1 + 1)])
     D[(D <= 0) | (D > 60.0)] = np.nan
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)                # pixels never valid: NaN
         med = np.nanmedian(D, axis=0)
     out = {"frames": [f0, f1]}
     for name in ("wall", "floor"):
