@@ -33,7 +33,7 @@ def resolve_threads(nthreads) -> int:
     """Validate a thread count (None = numba's current setting) against numba's maximum."""
     if nthreads is None:
         return numba.get_num_threads()
-    if isinstance(nthreads, bool) or not isinstance(nthreads, (int,)) and not hasattr(nthreads, "__index__"):
+    if isinstance(nthreads, bool) or not hasattr(nthreads, "__index__"):      # int or NumPy integer
         raise ValueError(f"nthreads must be an integer in [1, {numba.config.NUMBA_NUM_THREADS}], got {nthreads!r}")
     n = int(nthreads)
     if n < 1 or n > numba.config.NUMBA_NUM_THREADS:

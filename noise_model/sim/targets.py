@@ -70,6 +70,7 @@ import numpy as np
 
 from ..checks import check_intrinsics, check_positive_scalar
 from ..d435 import D435, SensorModel
+from ._checks import _rng
 from .noise import add_noise
 from .scene import Scene, Target
 
@@ -661,8 +662,7 @@ def simulate_target(geometry: CaptureGeometry, n_frames: int, rng: np.random.Gen
     """
     if not isinstance(geometry, CaptureGeometry):
         raise ValueError(f"geometry must be a CaptureGeometry, got {type(geometry).__name__}")
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError("rng must be a numpy.random.Generator (seed it: np.random.default_rng(seed))")
+    _rng(rng)
     if not isinstance(model, SensorModel):
         raise ValueError(f"model must be a noise_model.SensorModel, got {type(model).__name__}")
     if isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer)) or n_frames < 1:
@@ -716,8 +716,6 @@ def simulate_target_frames(K, width: int, height: int, distance_m: float, n_fram
     ndarray, shape (n_frames, height, width), uint16
         Depth units of ``depth_scale`` [m]; 0 = no data.
     """
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError("rng must be a numpy.random.Generator (seed it: np.random.default_rng(seed))")
     nf = int(n_frames)
     if nf < 1:
         raise ValueError(f"n_frames must be >= 1, got {n_frames}")
@@ -725,7 +723,7 @@ def simulate_target_frames(K, width: int, height: int, distance_m: float, n_fram
     if kind == "board":
         target.update(width_m=width_m, height_m=height_m)
     geometry = CaptureGeometry("target", K, width, height, depth_scale, model.baseline_m, target, background_m)
-    return simulate_target(geometry, nf, rng, model, effects)
+    return simulate_target(geometry, nf, rng, model, effects)     # which checks rng
 
 
 def simulate_target_stereo(geometry: CaptureGeometry, n_frames: int, rng: np.random.Generator,
@@ -759,8 +757,7 @@ def simulate_target_stereo(geometry: CaptureGeometry, n_frames: int, rng: np.ran
 
     if not isinstance(geometry, CaptureGeometry):
         raise ValueError(f"geometry must be a CaptureGeometry, got {type(geometry).__name__}")
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError("rng must be a numpy.random.Generator (seed it: np.random.default_rng(seed))")
+    _rng(rng)
     g = geometry
     if camera is None:
         camera = StereoD435(g.width, g.height, K=g.K, baseline_m=g.baseline_m, matcher=preset,
