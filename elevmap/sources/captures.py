@@ -16,9 +16,14 @@ Required keys (a missing one is a ``ValueError`` naming the capture and the key)
 * top level: ``format`` (= ``"d435-captures/1"``), ``camera``, ``captures``;
 * ``camera``: ``width``, ``height`` [px], ``fx``, ``fy``, ``ppx``, ``ppy`` [px], ``depth_scale`` [m/unit]
   (``model`` and ``baseline_m`` [m] are optional);
-* each capture: ``id``, ``depth``, ``target`` with ``kind`` (``wall`` or ``board``) and ``distance_m``
-  [m]; a board also ``width_m`` and ``height_m`` [m]. ``yaw_deg`` / ``pitch_deg`` [deg] default to 0,
-  ``background_m`` [m] to null.
+* each capture: ``id``, ``depth``, ``target`` with ``kind`` (``wall``, ``board`` or ``plane``); a wall
+  or board ``distance_m`` [m], a board also ``width_m`` and ``height_m`` [m], ``yaw_deg`` / ``pitch_deg``
+  [deg] default to 0, ``background_m`` [m] to null; a plane ``normal`` (3 numbers, unit length, pointing
+  towards the camera: ``normal[2] < 0``) and ``offset_m`` > 0 [m] (the plane n . p + offset_m = 0).
+* optional per capture: ``mask``, a PNG file of the capture's size, non-zero where a pixel sees the
+  target (without one, every pixel the target covers); ``geometry``, ``"measured"`` (the default: the
+  target's pose from a tape or laser meter) or ``"fitted"`` (from a plane fit to the frames themselves,
+  so statistics against the true distance mean nothing for it).
 
 Unknown keys are kept (``Capture.extra``, ``CaptureSet.extra``) and written back. A target the
 camera cannot see is an error: ``distance_m <= 0``, an unknown kind, a board without a positive
@@ -41,15 +46,21 @@ import numpy as np
 from ..fileio import atomic_output, json_ready, write_json_atomic
 from ..frame import Frame
 
-__all__ = ["FORMAT", "Capture", "CaptureSet", "read_capture_set", "write_capture_set", "CAPTURES_JSON"]
+__all__ = ["FORMAT", "Capture", "CaptureSet", "read_capture_set", "write_capture_set", "CAPTURES_JSON",
+           "GEOMETRIES"]
 
 FORMAT = "d435-captures/1"
 CAPTURES_JSON = "captures.json"
 CAMERA_REQUIRED = ("width", "height", "fx", "fy", "ppx", "ppy", "depth_scale")
 CAPTURE_REQUIRED = ("id", "depth", "target")
-TARGET_KINDS = ("wall", "board")
+TARGET_KINDS = ("wall", "board", "plane")
+#: Values of a capture's ``geometry`` key: how its target's pose is known.
+GEOMETRIES = ("measured", "fitted")
 DEPTH_SUFFIXES = (".npy", ".bag", ".db3")
-_CAPTURE_KEYS = ("id", "depth", "target", "background_m")
+_CAPTURE_KEYS = ("id", "depth", "target", "background_m", "mask", "geometry")
+#: |normal| of a plane target may differ from 1 by this much (numbers rounded when written by hand).
+_NORMAL_TOL = 1e-3
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 #: Differences between captures.json and a recording's own intrinsics below these are not reported.
 _PX_TOL = 1e-3
@@ -102,7 +113,11 @@ def _check_target(target, where: str, background_m) -> None:
         raise ValueError(f"{w}: missing required key 'kind'")
     kind = target["kind"]
     if kind not in TARGET_KINDS:
-        raise ValueError(f"{w}: unknown kind {kind!r} (expected 'wall' or 'board'); the camera cannot see it")
+        raise ValueError(f"{w}: unknown kind {kind!r} (expected 'wall', 'board' or 'plane'); the camera cannot "
+                         "see it")
+    if kind == "plane":
+        _check_plane_target(target, w, where, background_m)
+        return
     d = _number(target, "distance_m", w)
     if d <= 0:
         raise ValueError(f"{w}: 'distance_m' = {d} m: the camera cannot see a target at or behind its centre "
@@ -123,6 +138,65 @@ def _check_target(target, where: str, background_m) -> None:
         if float(background_m) <= d:
             raise ValueError(f"{where}: 'background_m' = {background_m} m is not behind the target at "
                              f"{d} m; it would hide it")
+
+
+def _check_plane_target(target: dict, w: str, where: str, background_m) -> None:
+    """A ``plane`` target: unit ``normal`` towards the camera, ``offset_m`` > 0, no background."""
+    if "normal" not in target:
+        raise ValueError(f"{w}: missing required key 'normal'")
+    m = target["normal"]
+    if not isinstance(m, (list, tuple)) or len(m) != 3 or not all(_is_number(x) and math.isfinite(float(x))
+                                                                   for x in m):
+        raise ValueError(f"{w}: 'normal' must be 3 finite numbers, got {m!r}")
+    norm = math.sqrt(sum(float(x) ** 2 for x in m))
+    if abs(norm - 1.0) > _NORMAL_TOL:
+        raise ValueError(f"{w}: 'normal' {list(m)} must have unit length, it has {norm:.6g}")
+    if float(m[2]) >= 0:
+        raise ValueError(f"{w}: 'normal' {list(m)} must point towards the camera (normal[2] < 0); "
+                         "the camera cannot see the plane's front")
+    off = _number(target, "offset_m", w)
+    if off <= 0:
+        raise ValueError(f"{w}: 'offset_m' = {off} m must be > 0 (the camera's distance to the plane)")
+    if background_m is not None:
+        raise ValueError(f"{where}: 'background_m' is for a board; a plane target has none (got {background_m!r})")
+
+
+def _png_size(path: Path, where: str) -> tuple[int, int]:
+    """(width, height) [px] of a PNG from its IHDR chunk, without decoding it."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+    except FileNotFoundError:
+        raise ValueError(f"{where}: 'mask' file {path} does not exist") from None
+    except OSError as exc:
+        raise ValueError(f"{where}: 'mask' file {path} cannot be read ({exc})") from None
+    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValueError(f"{where}: 'mask' file {path} is not a PNG image")
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _check_mask_name(d: dict, w: str) -> str | None:
+    mask = d.get("mask")
+    if mask is None:
+        return None
+    if not isinstance(mask, str) or not mask:
+        raise ValueError(f"{w}: 'mask' must be a PNG file name, got {mask!r}")
+    if Path(mask).suffix.lower() != ".png":
+        raise ValueError(f"{w}: 'mask' file {mask!r} must be a .png")
+    return mask
+
+
+def _check_mask_image(img, camera: dict, where: str, what: str) -> np.ndarray:
+    """A decoded mask image -> bool (H, W): non-zero in any channel = the target."""
+    H, W = int(camera["height"]), int(camera["width"])
+    a = np.asarray(img)
+    if a.ndim == 3:
+        a = (a != 0).any(axis=2)
+    if a.ndim != 2:
+        raise ValueError(f"{where}: 'mask' {what} has shape {np.asarray(img).shape}; expected ({H}, {W})")
+    if a.shape != (H, W):
+        raise ValueError(f"{where}: 'mask' {what} is {a.shape[1]}x{a.shape[0]}, not the camera's {W}x{H}")
+    return a != 0
 
 
 def _npy_header(path: Path, where: str):
@@ -183,6 +257,13 @@ class Capture(Mapping):
         z [m] of a fronto-parallel wall behind a board; None = nothing.
     extra : dict
         Unknown keys of the capture, kept.
+    mask : str or None
+        The mask PNG as written in captures.json (relative to the folder); None = every pixel the
+        target covers.
+    mask_path : Path or None
+        That file, resolved against the capture set's folder.
+    geometry : str
+        ``"measured"`` (the default) or ``"fitted"``: how the target's pose is known.
     """
 
     id: str
@@ -191,22 +272,48 @@ class Capture(Mapping):
     target: dict
     background_m: float | None = None
     extra: dict = field(default_factory=dict)
+    mask: str | None = None
+    mask_path: Path | None = None
+    geometry: str = "measured"
 
     @property
     def kind(self) -> str:
         return self.target["kind"]
 
     @property
+    def is_fitted(self) -> bool:
+        """True when the target's pose comes from a plane fit to the frames (``geometry`` "fitted")."""
+        return self.geometry == "fitted"
+
+    @property
+    def plane(self):
+        """The target's plane, :class:`noise_model.analysis.planes.Plane`: n . p = offset_m [m] with the
+        normal n pointing away from the camera (n_z > 0), so a ``plane`` target's file ``normal`` is -n."""
+        from noise_model.analysis.planes import target_plane
+
+        return target_plane(self.target)
+
+    def _pose(self) -> tuple[float, float, float]:
+        """(distance_m, yaw_deg, pitch_deg): the file's, or for a plane target the equivalent wall's."""
+        if self.kind == "plane":
+            from noise_model.analysis.planes import plane_pose
+
+            return plane_pose(self.plane)
+        return (float(self.target["distance_m"]), float(self.target.get("yaw_deg") or 0.0),
+                float(self.target.get("pitch_deg") or 0.0))
+
+    @property
     def distance_m(self) -> float:
-        return float(self.target["distance_m"])
+        """z [m] where the target's plane meets the optical axis."""
+        return self._pose()[0]
 
     @property
     def yaw_deg(self) -> float:
-        return float(self.target.get("yaw_deg") or 0.0)
+        return self._pose()[1]
 
     @property
     def pitch_deg(self) -> float:
-        return float(self.target.get("pitch_deg") or 0.0)
+        return self._pose()[2]
 
     @property
     def is_recording(self) -> bool:
@@ -215,8 +322,12 @@ class Capture(Mapping):
 
     def to_dict(self) -> dict:
         """The capture as in captures.json."""
-        return {"id": self.id, "depth": self.depth, "target": self.target, "background_m": self.background_m,
-                **self.extra}
+        d = {"id": self.id, "depth": self.depth, "target": self.target, "background_m": self.background_m}
+        if self.mask is not None:
+            d["mask"] = self.mask
+        if self.geometry != "measured":
+            d["geometry"] = self.geometry
+        return {**d, **self.extra}
 
     # read-only mapping of the captures.json entry
     def __getitem__(self, key):
@@ -248,15 +359,27 @@ def _parse_capture(d, k: int, camera: dict, folder: Path, where: str, *, check_f
         raise ValueError(f"{w}: 'depth' file {depth!r} must be a .npy, .bag or .db3")
     background = d.get("background_m")
     _check_target(d["target"], w, background)
+    mask = _check_mask_name(d, w)
+    geometry = d.get("geometry")
+    geometry = "measured" if geometry is None else geometry
+    if geometry not in GEOMETRIES:
+        raise ValueError(f"{w}: 'geometry' must be 'measured' or 'fitted', got {geometry!r}")
     path = folder / depth
+    mask_path = None if mask is None else folder / mask
     if check_file:
         if Path(depth).suffix.lower() == ".npy":
             shape, dtype, _ = _npy_header(path, w)
             _check_depth_array(shape, dtype, camera, w, f"file {path}")
         elif not path.is_file():
             raise ValueError(f"{w}: 'depth' file {path} does not exist")
+        if mask_path is not None:
+            mw, mh = _png_size(mask_path, w)
+            if Path(depth).suffix.lower() == ".npy" and (mw, mh) != (int(camera["width"]), int(camera["height"])):
+                raise ValueError(f"{w}: 'mask' file {mask_path} is {mw}x{mh}, not the camera's "
+                                 f"{camera['width']}x{camera['height']}")
     extra = {key: v for key, v in d.items() if key not in _CAPTURE_KEYS}
-    return Capture(cid, depth, path, d["target"], None if background is None else float(background), extra)
+    return Capture(cid, depth, path, d["target"], None if background is None else float(background), extra,
+                   mask, mask_path, geometry)
 
 
 def _check_unique(captures: list[Capture], where: str) -> None:
@@ -373,6 +496,25 @@ class CaptureSet:
             return {**self.camera, **{k: i[k] for k in ("width", "height", "fx", "fy", "ppx", "ppy")},
                     "depth_scale": src.depth_scale}
 
+    def load_mask(self, capture_id: str) -> np.ndarray | None:
+        """A capture's mask: bool (H, W), True where a pixel sees the target; None when it has none.
+
+        The PNG may be 8- or 16-bit, grey or colour: a pixel is the target's where any channel is non-zero.
+        Its size must be the capture's (a recording's own, for a .bag/.db3 capture).
+        """
+        cap = self.capture(capture_id)
+        if cap.mask_path is None:
+            return None
+        where = f"{self.folder}: capture '{cap.id}'"
+        _png_size(cap.mask_path, where)
+        import cv2
+
+        img = cv2.imread(str(cap.mask_path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ValueError(f"{where}: 'mask' file {cap.mask_path} cannot be decoded (truncated or not a PNG)")
+        camera = self.camera_for(cap.id) if cap.is_recording else self.camera
+        return _check_mask_image(img, camera, where, f"file {cap.mask_path}")
+
     def load_depth(self, capture_id: str) -> np.ndarray:
         """All frames of a capture: uint16 (frames, H, W) depth units (0 = no data).
 
@@ -411,6 +553,17 @@ class CaptureSet:
         K, scale = self.K, self.depth_scale
         for k in range(depth.shape[0]):
             yield Frame(depth=np.array(depth[k]), K=K, depth_scale=scale, stamp=k / rate, camera=name, index=k)
+
+
+def _write_mask_png(path: Path, mask: np.ndarray) -> None:
+    """Write a bool (H, W) mask as an 8-bit grey PNG (255 = the target, 0 = not), atomically."""
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.where(mask, 255, 0).astype(np.uint8))
+    if not ok:
+        raise ValueError(f"{path}: the mask could not be encoded as PNG")
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(buf.tobytes())
 
 
 def read_capture_set(folder) -> CaptureSet:
@@ -475,11 +628,13 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
     camera : dict
         The camera entry (see the module docstring): ``width``, ``height``, ``fx``, ``fy``, ``ppx``,
         ``ppy`` [px], ``depth_scale`` [m/unit], optional ``model``, ``baseline_m``; unknown keys kept.
-    captures : list of (dict, ndarray or None)
-        Each capture's entry (``id``, ``target``, optional ``background_m``, ``depth`` = file name,
-        default ``"<id>.npy"``, unknown keys kept) and its depth, uint16 (frames, height, width). With
-        None instead of an array, ``depth`` must name a file already in the folder (e.g. a .db3 you
-        recorded), which is referenced, not written.
+    captures : list of (dict, ndarray or None) or (dict, ndarray or None, ndarray or None)
+        Each capture's entry (``id``, ``target``, optional ``background_m``, ``geometry``, ``depth`` =
+        file name, default ``"<id>.npy"``, ``mask`` = file name, unknown keys kept), its depth, uint16
+        (frames, height, width), and optionally its mask, bool (height, width) (True = the target),
+        written as an 8-bit PNG (0 / 255) named by ``mask``, default ``"<id>_mask.png"``. With None
+        instead of a depth array, ``depth`` must name a file already in the folder (e.g. a .db3 you
+        recorded), which is referenced, not written; likewise a ``mask`` name without a mask array.
     overwrite : bool
         Replace an existing captures.json / .npy of the same names. Without it, a folder that already
         holds a capture set, or any file this call would write, is an error and nothing is written.
@@ -495,8 +650,9 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
     ------
     ValueError
         Naming the capture and the key, before anything is written: invalid camera, missing key,
-        invalid target, depth not uint16 (frames, height, width) for the camera, duplicate ids or
-        files, a file name that is not a plain name in the folder, existing files without ``overwrite``.
+        invalid target, depth not uint16 (frames, height, width) for the camera, a mask not (height,
+        width), duplicate ids or files, a file name that is not a plain name in the folder, existing
+        files without ``overwrite``.
         If writing fails part way, the files this call created are removed again.
     """
     folder = Path(folder)
@@ -505,12 +661,15 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
     camera = _check_camera(camera, where)
     if isinstance(captures, (str, bytes)) or not hasattr(captures, "__iter__"):
         raise ValueError("captures must be a list of (capture dict, depth array) pairs")
-    entries, arrays = [], []
+    entries, arrays, masks = [], [], []
     for k, item in enumerate(captures):
         try:
-            d, arr = item
+            d, arr, *rest = item
         except (TypeError, ValueError):
             raise ValueError(f"captures[{k}] must be a (capture dict, depth array) pair") from None
+        if len(rest) > 1:
+            raise ValueError(f"captures[{k}] must be (capture dict, depth array[, mask array]), got {len(item)} items")
+        mask_arr = rest[0] if rest else None
         if not isinstance(d, dict):
             raise ValueError(f"captures[{k}]: the capture must be a dict, got {type(d).__name__}")
         d = json_ready(dict(d))
@@ -519,6 +678,8 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
             if "/" in cid or "\\" in cid or cid.startswith("."):
                 raise ValueError(f"{where}: capture '{cid}': 'id' must be usable as a file name")
             d.setdefault("depth", f"{cid}.npy")
+            if mask_arr is not None:
+                d.setdefault("mask", f"{cid}_mask.png")
         d.setdefault("background_m", None)
         cap = _parse_capture(d, k, camera, folder, where, check_file=False)
         name = cap.depth
@@ -528,19 +689,46 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
         w = f"{where}: capture '{cap.id}'"
         if arr is None:
             # reference a file already in the folder
-            _parse_capture(d, k, camera, folder, where, check_file=True)
+            ref = {key: v for key, v in d.items() if not (key == "mask" and mask_arr is not None)}
+            _parse_capture(ref, k, camera, folder, where, check_file=True)
         else:
             if not name.lower().endswith(".npy"):
                 raise ValueError(f"{w}: 'depth' {name!r} must end in .npy: arrays are written as .npy")
             if not isinstance(arr, np.ndarray):
                 raise ValueError(f"{w}: depth must be a numpy array, got {type(arr).__name__}")
             _check_depth_array(arr.shape, arr.dtype, camera, w, "array")
+        if cap.mask is not None and (Path(cap.mask).name != cap.mask or cap.mask.startswith(".")):
+            raise ValueError(f"{w}: 'mask' must be a plain file name in the folder, got {cap.mask!r}")
+        if mask_arr is not None:
+            if cap.mask is None:
+                raise ValueError(f"{w}: a mask array needs a capture id or a 'mask' file name")
+            m = np.asarray(mask_arr)
+            if m.dtype != bool:
+                raise ValueError(f"{w}: the mask must be a boolean array (True = the target), got dtype {m.dtype}")
+            mask_arr = _check_mask_image(m, camera, w, "array")
+            if not mask_arr.any():
+                raise ValueError(f"{w}: the mask selects no pixel")
+        elif cap.mask is not None and arr is not None:    # reference an existing PNG
+            mw, mh = _png_size(cap.mask_path, w)
+            if (mw, mh) != (camera["width"], camera["height"]):
+                raise ValueError(f"{w}: 'mask' file {cap.mask_path} is {mw}x{mh}, not the camera's "
+                                 f"{camera['width']}x{camera['height']}")
         entries.append(cap)
         arrays.append(arr)
+        masks.append(mask_arr)
     _check_unique(entries, where)
+    written_masks: dict[str, str] = {}
+    for cap, m in zip(entries, masks):
+        if m is None:
+            continue
+        if cap.mask in written_masks:
+            raise ValueError(f"{where}: capture '{cap.id}': 'mask' file {cap.mask!r} is also written for capture "
+                             f"'{written_masks[cap.mask]}'")
+        written_masks[cap.mask] = cap.id
 
     json_path = folder / CAPTURES_JSON
-    targets = [json_path] + [c.path for c, a in zip(entries, arrays) if a is not None]
+    targets = ([json_path] + [c.path for c, a in zip(entries, arrays) if a is not None]
+               + [c.mask_path for c, m in zip(entries, masks) if m is not None])
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"{folder} exists and is not a folder")
     if not overwrite:
@@ -563,6 +751,9 @@ def write_capture_set(folder, camera: dict, captures, *, overwrite: bool = False
             with atomic_output(cap.path) as tmp:
                 with open(tmp, "wb") as fh:
                     np.save(fh, np.ascontiguousarray(arr, dtype=np.uint16), allow_pickle=False)
+        for cap, m in zip(entries, masks):
+            if m is not None:
+                _write_mask_png(cap.mask_path, m)
         write_json_atomic(json_path, doc)  # last: the set exists only once all its files do
     except BaseException:
         for p in created:

@@ -7,7 +7,10 @@ tripod. This module holds, without any I/O (the readers live in ``elevmap.source
 * :class:`CaptureGeometry` (from :mod:`noise_model.sim.targets`, where it is rendered and simulated):
   the camera intrinsics K [px], image size, depth scale [m/unit], baseline [m] and the target, built
   from the dicts of ``captures.json``, with its pixel *regions* and their codes ``REGION_*``.
-* :class:`CaptureData`: a geometry and its frames as metric depth (F, H, W) [m], NaN = no data.
+* :class:`CaptureData`: a geometry and its frames as metric depth (F, H, W) [m], NaN = no data, with
+  the capture's optional pixel mask and whether its geometry was measured or fitted.
+* :func:`capture_geometry`: the geometry of a captures.json entry, any target kind: a ``plane``
+  target (a fitted plane) becomes the wall whose plane it is (:func:`~.planes.plane_pose`).
 * :func:`simulate_capture`: the reference simulation of a capture
   (:func:`noise_model.sim.targets.simulate_target`), with the capture's id and regions in the
   context of the effects.
@@ -26,6 +29,7 @@ Effect context
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,24 +40,81 @@ from ..sim.targets import (
     REGION_INTERIOR, REGION_LEFT_BAND, REGION_NAMES, REGION_NONE, CaptureGeometry, simulate_target,
 )
 
-__all__ = ["CaptureGeometry", "CaptureData", "simulate_capture", "check_captures", "REGION_NONE", "REGION_INTERIOR",
+__all__ = ["CaptureGeometry", "CaptureData", "capture_geometry", "simulate_capture", "check_captures", "GEOMETRIES", "REGION_NONE", "REGION_INTERIOR",
            "REGION_EDGE_LEFT", "REGION_EDGE_RIGHT", "REGION_LEFT_BAND", "REGION_BACKGROUND", "REGION_NAMES",
            "LEFT_BAND_MARGIN_PX_424", "EDGE_PX_424", "LATERAL_EDGE_SIGMAS"]
 
 
+#: How a capture's target pose is known: "measured" (tape or laser meter) or "fitted" (a plane fit to the
+#: frames themselves, which absorbs any bias or scale error: statistics against the true distance are
+#: meaningless for it).
+GEOMETRIES = ("measured", "fitted")
+
+
+def capture_geometry(camera: Mapping, capture: Mapping) -> CaptureGeometry:
+    """The :class:`CaptureGeometry` of a captures.json entry, for any target kind.
+
+    A ``wall`` or ``board`` is :meth:`CaptureGeometry.from_capture_set_entry`. A ``plane`` target
+    (``normal`` m towards the camera, ``offset_m``: m . p + offset_m = 0) is the unbounded wall with the
+    same plane: normal n = -m / |m| = R_y(yaw) R_x(pitch) e_z, centre on the optical axis at
+    distance_m = offset_m / n_z (:func:`noise_model.analysis.planes.plane_pose`), so it renders the
+    same depth and incidence angle at every pixel.
+
+    Parameters
+    ----------
+    camera : mapping
+        The ``camera`` object of captures.json.
+    capture : mapping
+        One entry of ``captures``.
+
+    Returns
+    -------
+    CaptureGeometry
+
+    Raises
+    ------
+    ValueError
+        A bad target, named with the capture's id.
+    """
+    from .planes import plane_pose, target_plane
+
+    if not isinstance(capture, Mapping):
+        raise ValueError(f"capture must be a dict, got {type(capture).__name__}")
+    target = capture.get("target")
+    if isinstance(target, Mapping) and target.get("kind") == "plane":
+        cid = capture.get("id")
+        try:
+            d, yaw, pitch = plane_pose(target_plane(target))
+        except ValueError as exc:
+            raise ValueError(f"{cid}: {exc}") from None
+        if capture.get("background_m") is not None:
+            raise ValueError(f"{cid}: a plane target has no background_m")
+        capture = {**capture, "target": {"kind": "wall", "distance_m": d, "yaw_deg": yaw, "pitch_deg": pitch}}
+    return CaptureGeometry.from_capture_set_entry(camera, capture)
+
+
 @dataclass
 class CaptureData:
-    """A capture's geometry and frames.
+    """A capture's geometry and frames, with its mask and how its geometry is known.
 
     Attributes
     ----------
     geometry : CaptureGeometry
     depth_m : ndarray, shape (F, H, W), float64
         Metric z-depth [m]; NaN = no data.
+    mask : ndarray of bool, shape (H, W), or None
+        True where a pixel sees the target (captures.json's ``mask``); None = every pixel the target
+        covers. Statistics use only the mask's pixels.
+    geometry_origin : str
+        captures.json's ``geometry``: "measured" (default) or "fitted" (:data:`GEOMETRIES`). With fitted
+        geometry, statistics against the true distance (bias, scale, absolute error) are not computed:
+        the plane fit absorbs them.
     """
 
     geometry: CaptureGeometry
     depth_m: np.ndarray
+    mask: np.ndarray | None = None
+    geometry_origin: str = "measured"
 
     def __post_init__(self):
         if not isinstance(self.geometry, CaptureGeometry):
@@ -74,6 +135,35 @@ class CaptureData:
         if top > 100.0:
             raise ValueError(f"{g.id}: depth_m holds values up to {top:.1f}: depth must be in metres")
         self.depth_m = d
+        if self.geometry_origin not in GEOMETRIES:
+            raise ValueError(f"{g.id}: geometry_origin must be 'measured' or 'fitted', got {self.geometry_origin!r}")
+        if self.mask is not None:
+            m = np.asarray(self.mask)
+            if m.dtype != bool or m.shape != (g.height, g.width):
+                raise ValueError(f"{g.id}: mask must be a boolean image of shape ({g.height}, {g.width}), "
+                                 f"got {m.dtype} {m.shape}")
+            if not m.any():
+                raise ValueError(f"{g.id}: mask selects no pixel")
+            self.mask = m
+
+    @property
+    def is_fitted(self) -> bool:
+        """True when the target's pose comes from a plane fit to the frames."""
+        return self.geometry_origin == "fitted"
+
+    @property
+    def plane(self):
+        """The target's plane (:class:`noise_model.analysis.planes.Plane`: n . p = offset_m [m], n_z > 0)."""
+        from .planes import target_plane
+
+        return target_plane(self.geometry.target)
+
+    def target_pixels(self) -> np.ndarray:
+        """bool (H, W): the pixels whose statistics count: the mask, else every pixel the target covers."""
+        if self.mask is not None:
+            return self.mask.copy()
+        z, _ = self.geometry.render()
+        return np.isfinite(z)
 
     @property
     def id(self) -> str:
@@ -84,7 +174,17 @@ class CaptureData:
         return int(self.depth_m.shape[0])
 
     @classmethod
-    def from_units(cls, geometry: CaptureGeometry, depth_units: np.ndarray) -> "CaptureData":
+    def from_capture_entry(cls, camera: Mapping, capture: Mapping, depth_units: np.ndarray,
+                           mask: np.ndarray | None = None) -> "CaptureData":
+        """A capture from its captures.json entry (:func:`capture_geometry`, its ``geometry`` key), its
+        frames in depth units (:meth:`from_units`) and its mask, bool (H, W) or None."""
+        origin = capture.get("geometry") if isinstance(capture, Mapping) else None
+        return cls.from_units(capture_geometry(camera, capture), depth_units, mask=mask,
+                              geometry_origin="measured" if origin is None else origin)
+
+    @classmethod
+    def from_units(cls, geometry: CaptureGeometry, depth_units: np.ndarray, *, mask: np.ndarray | None = None,
+                   geometry_origin: str = "measured") -> "CaptureData":
         """Frames from depth units: depth_m = units * depth_scale, 0 -> NaN.
 
         Parameters
@@ -92,6 +192,9 @@ class CaptureData:
         geometry : CaptureGeometry
         depth_units : ndarray, shape (F, H, W) or (H, W), unsigned or signed integers
             Depth units of ``geometry.depth_scale`` (uint16 as recorded); 0 = no data.
+        mask : ndarray of bool, shape (H, W), optional
+        geometry_origin : str
+            "measured" or "fitted" (see the class).
         """
         if not isinstance(geometry, CaptureGeometry):
             raise ValueError(f"geometry must be a CaptureGeometry, got {type(geometry).__name__}")
@@ -107,7 +210,7 @@ class CaptureData:
             raise ValueError(f"{geometry.id}: depth units must be >= 0, got {int(a.min())}")
         d = a.astype(np.float64) * geometry.depth_scale
         d[a == 0] = np.nan
-        return cls(geometry, d)
+        return cls(geometry, d, mask, geometry_origin)
 
 
 

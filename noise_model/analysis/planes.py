@@ -36,6 +36,8 @@ __all__ = [
     "fit_plane_ransac",
     "normalised_coordinates",
     "points_from_depth",
+    "target_plane",
+    "plane_pose",
     "INLIER_REL",
 ]
 
@@ -399,3 +401,92 @@ def points_from_depth(z, up, vp) -> np.ndarray:
     """Camera-frame points (..., 3) [m] of depths z [m] on the rays (u', v', 1): p = z (u', v', 1)."""
     z = np.asarray(z, dtype=np.float64)
     return np.stack([np.asarray(up) * z, np.asarray(vp) * z, z], axis=-1)
+
+
+def target_plane(target) -> Plane:
+    """The plane of a capture-set target (a ``target`` object of captures.json), as a :class:`Plane`.
+
+    * ``kind`` "wall" or "board": the normal is R e_z with R = R_y(yaw) R_x(pitch) (the target's axes,
+      :func:`noise_model.sim.targets.target_rotation`) and the plane passes through the target's centre
+      c = (0, 0, distance_m): offset_m = c . R e_z = distance_m cos(yaw) cos(pitch).
+    * ``kind`` "plane": the file's ``normal`` m points towards the camera (m_z < 0) and the plane is
+      m . p + offset_m = 0, so here normal = -m / |m| and offset_m is the file's (both > 0 on the axis).
+
+    Parameters
+    ----------
+    target : mapping
+        ``kind`` and its keys (``distance_m`` [m], ``yaw_deg``, ``pitch_deg`` [deg]; or ``normal`` (3,),
+        ``offset_m`` [m]).
+
+    Returns
+    -------
+    Plane
+        n . p = offset_m with n_z > 0 and offset_m > 0 (the plane crosses the optical axis in front of
+        the camera).
+
+    Raises
+    ------
+    ValueError
+        An unknown kind, a missing or non-finite key, a zero or backward-facing normal, offset_m <= 0.
+    """
+    kind = target.get("kind") if hasattr(target, "get") else None
+    if kind in ("wall", "board"):
+        from ..sim.targets import target_rotation
+
+        d = _finite(target.get("distance_m"), "target distance_m")
+        R = target_rotation(_finite(target.get("yaw_deg") or 0.0, "target yaw_deg"),
+                            _finite(target.get("pitch_deg") or 0.0, "target pitch_deg"))
+        n = R[:, 2]
+        off = d * float(n[2])
+        if d <= 0 or n[2] <= 1e-12:
+            raise ValueError(f"target distance_m {d} m, yaw_deg/pitch_deg: the plane does not face the camera")
+        return Plane(n, off)
+    if kind == "plane":
+        m = np.asarray(target.get("normal"), dtype=np.float64) if target.get("normal") is not None else None
+        if m is None or m.shape != (3,) or not np.all(np.isfinite(m)):
+            raise ValueError(f"target normal must be 3 finite numbers, got {target.get('normal')!r}")
+        norm = float(np.linalg.norm(m))
+        if norm == 0.0 or m[2] >= 0:
+            raise ValueError(f"target normal {m.tolist()} must point towards the camera (normal[2] < 0)")
+        off = _finite(target.get("offset_m"), "target offset_m")
+        if off <= 0:
+            raise ValueError(f"target offset_m = {off} m must be > 0 (the camera's distance to the plane)")
+        return Plane(-m / norm, off)
+    raise ValueError(f"target kind must be 'wall', 'board' or 'plane', got {kind!r}")
+
+
+def plane_pose(plane: Plane) -> tuple[float, float, float]:
+    """The wall pose (distance_m [m], yaw_deg, pitch_deg [deg]) whose plane is ``plane``.
+
+    The inverse of :func:`target_plane` for a wall: with n = R e_z = (sin a cos b, -sin b, cos a cos b),
+    pitch b = -asin(n_y), yaw a = atan2(n_x, n_z), and the plane meets the optical axis at
+    distance_m = offset_m / n_z.
+
+    Parameters
+    ----------
+    plane : Plane
+        With n_z > 0 and offset_m > 0 (it crosses the optical axis in front of the camera).
+
+    Returns
+    -------
+    (float, float, float)
+
+    Raises
+    ------
+    ValueError
+        The plane does not cross the optical axis in front of the camera.
+    """
+    n = np.asarray(plane.normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    if not (n[2] > 1e-12 and plane.offset_m > 0):
+        raise ValueError(f"plane normal {n.tolist()}, offset {plane.offset_m} m does not cross the optical axis "
+                         "in front of the camera")
+    pitch = -math.degrees(math.asin(min(1.0, max(-1.0, float(n[1])))))
+    yaw = math.degrees(math.atan2(float(n[0]), float(n[2])))
+    return float(plane.offset_m / n[2]), yaw, pitch
+
+
+def _finite(v, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(float(v)):
+        raise ValueError(f"{name} must be a finite number, got {v!r}")
+    return float(v)
