@@ -47,14 +47,15 @@ def build_parser() -> argparse.ArgumentParser:
                                    "points with their 2-sigma covariance ellipsoids, the map coloured by height "
                                    "and by sigma, time, sigma and error over the frames) and, beside it, a PNG of "
                                    "the final map (height, sigma and error against the truth side by side: "
-                                   "demo.png beside demo.rrd). Both are replaced if they exist. Open the "
-                                   "recording with `rerun demo.rrd`.")
+                                   "demo.png beside demo.rrd). Existing files are replaced only with --overwrite. "
+                                   "Open the recording with `rerun demo.rrd`.")
     p.add_argument("--rrd", default="demo.rrd", help="recording to write (default: demo.rrd)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
     p.add_argument("--noise-model", action="store_true",
                    help="instead: the noise model alone (walls at 1 and 2 m, head-on and at 45 deg; no PNG)")
     p.add_argument("--spawn", action="store_true", help="also stream to a rerun viewer")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing recording and picture")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     for name, help_, desc in (
@@ -211,6 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--only", default=None, metavar="GROUPS",
                    help="comma-separated subset of: noise, mapper, move_to, height_scan, first_frame, render, stereo")
     p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
 
@@ -245,7 +247,7 @@ def _cmd_demo(args) -> int:
     if args.noise_model:
         from .commands.demo import run_noise_demo
 
-        _check_outputs({"--rrd": args.rrd}, overwrite=True)         # the demo replaces its own file
+        _check_outputs({"--rrd": args.rrd}, args.overwrite)
         summary = run_noise_demo(args.rrd, seed=args.seed, show_progress=not args.no_progress)
         print(json.dumps(summary, indent=2))
         print(f"wrote {args.rrd}; {_open_hint(args.rrd)}")
@@ -253,7 +255,7 @@ def _cmd_demo(args) -> int:
         from .commands.demo import run_mapping_demo
 
         summary = run_mapping_demo(args.rrd, seed=args.seed, n_frames=args.frames,
-                                   show_progress=not args.no_progress, spawn=args.spawn)
+                                   show_progress=not args.no_progress, spawn=args.spawn, overwrite=args.overwrite)
         _print_summary(summary)
         print(f"wrote {args.rrd} and {summary['png']}; {_open_hint(args.rrd)}")
     return 0
@@ -303,7 +305,8 @@ def _cmd_run(args) -> int:
     if args.command == "replay" and not str(args.source).lower().endswith(".rrd"):
         raise ValueError(f"{args.source}: replay takes a rerun recording (.rrd); use `elevmap run` for others")
     config = _load_config(args.config)
-    _check_outputs({"--rrd": args.rrd, "--json": args.json}, args.overwrite, inputs=[args.source])
+    _check_outputs({"--rrd": args.rrd, "--json": args.json}, args.overwrite,
+                   inputs=[args.source, args.poses, args.config, args.intrinsics])
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     src = open_source(args.source, poses=args.poses, intrinsics=args.intrinsics, frames=args.frames,
@@ -326,7 +329,7 @@ def _cmd_bench(args) -> int:
 
     if args.frames < 1 or args.reference_frames < 1:
         raise ValueError("--frames and --reference-frames must be >= 1")
-    _check_outputs({"--json": args.json}, overwrite=True)            # bench replaces its report
+    _check_outputs({"--json": args.json}, args.overwrite)
     groups = GROUPS if args.only is None else tuple(g.strip() for g in args.only.split(",") if g.strip())
     report = run_bench(args.frames, args.reference_frames, args.threads, show_progress=not args.no_progress,
                        groups=groups)
@@ -403,7 +406,7 @@ def _cmd_compare(args) -> int:
 
     if not args.json:
         raise ValueError("--json PATH is required (the report)")
-    _check_outputs({"--json": args.json, "--rrd": args.rrd}, args.overwrite)
+    _check_outputs({"--json": args.json, "--rrd": args.rrd}, args.overwrite, inputs=[args.sim_effects])
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     try:
@@ -468,12 +471,28 @@ COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "compare": _cmd_
 
 
 def main(argv=None) -> int:
+    """Run one command. Exit status: the command's (0 done), 2 a user error (``ValueError``), 1 the system
+    refused a write (``OSError``: disk full, permissions), 128 + the signal number when interrupted
+    (SIGINT, SIGTERM, SIGHUP; the outputs not finished are not written and no temporary file is left)."""
     args = build_parser().parse_args(argv)
+    from .fileio import handle_signals
+
     try:
-        return COMMANDS[args.command](args)
+        with handle_signals():
+            return COMMANDS[args.command](args)
     except ValueError as exc:
         print(f"elevmap {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"elevmap {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt as exc:
+        import signal
+
+        signum = getattr(exc, "signum", signal.SIGINT)
+        print(f"elevmap {args.command}: interrupted ({signal.Signals(signum).name}); unfinished outputs were not "
+              "written", file=sys.stderr)
+        return 128 + int(signum)
 
 
 if __name__ == "__main__":

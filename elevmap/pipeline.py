@@ -13,9 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .map.elevation_map import ElevationMap
+from .map.elevation_map import BYTES_PER_CELL, ElevationMap
 from .frame import Frame
 from .map.fusion import FusionParams
+from .map.settings import check_bool, check_int, check_map_memory, check_real
 from .mapper import Camera, Mapper
 
 __all__ = ["MappingConfig", "run_mapping", "map_error"]
@@ -57,6 +58,17 @@ class MappingConfig:
     max_ellipsoids: int = 300
     png_depth: bool = True
 
+    def __post_init__(self):
+        """Types and ranges of every setting, before any work (a file's ``"false"`` or ``0`` included)."""
+        check_real(self.resolution_m, "resolution_m", 0.0, lo_open=True, unit=" [m]")
+        check_real(self.length_m, "length_m", self.resolution_m, unit=" [m]")
+        if not isinstance(self.fusion, FusionParams):
+            raise ValueError(f"fusion must be a FusionParams ([map.fusion] table), got {self.fusion!r}")
+        for name in ("visibility_cleanup", "follow", "png_depth"):
+            check_bool(getattr(self, name), name)
+        for name in ("score_every", "log_every", "mesh_every", "max_points", "max_ellipsoids"):
+            check_int(getattr(self, name), name, 1)
+
     @classmethod
     def from_dict(cls, d: dict) -> "MappingConfig":
         """From a TOML/JSON table: ``[map]`` keys of this class plus a ``[map.fusion]`` sub-table."""
@@ -73,7 +85,10 @@ class MappingConfig:
             if set(f) - fknown:
                 raise ValueError(f"unknown fusion setting(s) {sorted(set(f) - fknown)}; known: {sorted(fknown)}")
             d["fusion"] = FusionParams(**f)
-        return cls(**d)
+        config = cls(**d)
+        n = int(round(config.length_m / config.resolution_m))
+        check_map_memory(n, BYTES_PER_CELL, config.resolution_m)      # before any frame is read
+        return config
 
 
 #: A truth jump larger than this between neighbouring cell centres is a step edge [m].
@@ -162,6 +177,12 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     total : int, optional
         Number of frames, for the progress bar.
 
+    Raises
+    ------
+    ValueError
+        A frame that is not a :class:`Frame`, a camera changing its intrinsics, or no frame at all (an
+        empty source is an error, not an empty map).
+
     Returns
     -------
     dict
@@ -211,6 +232,8 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
             if logger is not None and n_frames % config.log_every == 0:
                 logger.log(n_frames, frame, T, emap, mapper, stats, score, trail, first_stamp)
             n_frames += 1
+        if n_frames == 0:
+            raise ValueError("the source gave no depth frames: nothing to map")
         final = map_error(emap, truth_fn or _last_truth(frame if n_frames else None)) if (
             n_frames and (truth_fn or _last_truth(frame))) else None
         if logger is not None and n_frames:

@@ -510,7 +510,7 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
     fig_paths = {k: Path(figures_dir) / v for k, v in FIGURE_FILES.items()} if figures_dir is not None else {}
     check_outputs({"json_path": json_path, "model_path": model_path, "rrd_path": rrd_path,
                    **{f"figure {k}": p for k, p in fig_paths.items()}}, overwrite,
-                  inputs=[cs.folder / "captures.json"], create_folders=True)
+                  inputs=[cs.folder / "captures.json", *(c.path for c in cs.captures)], create_folders=True)
     if not cs.captures:
         raise ValueError(f"{cs.folder}: the capture set holds no captures")
 

@@ -327,7 +327,7 @@ def demo_png_path(rrd_path) -> Path:
 
 
 def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None, show_progress: bool = True,
-                     spawn: bool = False, png: bool = True) -> dict:
+                     spawn: bool = False, png: bool = True, overwrite: bool = True) -> dict:
     """The built-in mapping demo: a simulated robot walks across a box field and up a staircase.
 
     A D435 (424x240, 10 Hz) 0.45 m above the ground and pitched 30 deg down, with the paper's noise
@@ -350,6 +350,9 @@ def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None
     png : bool
         Also write the final map against the truth as a PNG beside the recording
         (:func:`demo_png_path`; replaced if it exists).
+    overwrite : bool
+        Replace existing files (the command line passes ``--overwrite``; otherwise they are refused before
+        any work).
 
     Returns
     -------
@@ -361,7 +364,7 @@ def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None
     from ..sources.simulated import SimulatedWalk
 
     png_path = demo_png_path(path) if png else None
-    check_outputs({"the recording": path, "the picture": png_path}, overwrite=True)   # the demo's own files
+    check_outputs({"--rrd": path, "the picture": png_path}, overwrite=overwrite)
     src = SimulatedWalk("demo", n_frames=n_frames, seed=seed)
     notes = ("# elevmap demo\n\nA simulated legged robot walks across a field of 4-15 cm boxes and up six "
              "0.17 m steps. Its D435 (424x240 at 10 Hz, 0.45 m up, pitched 30 deg down) has the noise of "

@@ -14,6 +14,7 @@ a reality nobody wrote as a formula, for the characterisation and the gap tool t
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,7 @@ import noise_model as nm
 from noise_model.sim import CaptureGeometry, simulate_target
 from noise_model.sim.targets import simulate_target_stereo
 
-from ..fileio import atomic_output, check_outputs
+from ..fileio import atomic_folder, check_folder_output
 
 __all__ = ["paper_grid", "simulate_capture_set", "validate_stereo", "SENSORS", "BOARD_WIDTH_M", "BOARD_HEIGHT_M",
            "BACKGROUND_M"]
@@ -55,7 +56,9 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
     Parameters
     ----------
     out : path
-        Output folder (a new one, or ``overwrite``).
+        Output folder: a new or empty one, or with ``overwrite`` an earlier capture set holding nothing else.
+        The set is built in a temporary folder beside it and swapped in once complete, so an interrupted
+        run leaves the previous set as it was (:func:`elevmap.fileio.atomic_folder`).
     grid : "paper" or sequence of (distance_m, yaw_deg)
         The settings.
     n_frames : int
@@ -82,7 +85,7 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
     """
     from tqdm import tqdm
 
-    from ..sources.captures import write_capture_set
+    from ..sources.captures import read_capture_set, write_capture_set
 
     settings = paper_grid() if isinstance(grid, str) and grid == "paper" else [(float(d), float(y)) for d, y in grid]
     if isinstance(grid, str) and grid != "paper":
@@ -101,11 +104,7 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
         matcher_preset(preset).check_size(width, height)        # the preset and the size, before anything else
         stereo = StereoD435(int(width), int(height), K=model.intrinsics(width, height), baseline_m=model.baseline_m,
                             matcher=preset)
-    out = Path(out)
-    if (out / "captures.json").exists() and not overwrite:
-        raise ValueError(f"{out} already holds a capture set; pass overwrite=True (--overwrite) to replace it")
-    check_outputs({f"capture {_capture_id(kind, d, y)}": out / f"{_capture_id(kind, d, y)}.npy" for d, y in settings},
-                  overwrite, create_folders=True)
+    out = check_folder_output("--out", out, overwrite, _capture_set_files, kind="a capture set")
     K = model.intrinsics(width, height)
     what = ("reference simulation of Ahn et al. 2019" if stereo is None
             else f"physical active-stereo model, matcher preset {preset}")
@@ -113,9 +112,8 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
               "height": int(height), "fx": float(K[0, 0]), "fy": float(K[1, 1]), "ppx": float(K[0, 2]),
               "ppy": float(K[1, 2]), "depth_scale": 0.001, "baseline_m": model.baseline_m}
     rng = np.random.default_rng(seed)
-    out.mkdir(parents=True, exist_ok=True)
-    entries, written = [], []
-    try:
+    entries = []
+    with atomic_folder(out) as tmp:         # the previous set stays whole until the new one is complete
         for distance, yaw in tqdm(settings, desc="simulate", unit="capture", disable=not show_progress):
             cid = _capture_id(kind, distance, yaw)
             target = {"kind": kind, "distance_m": distance, "yaw_deg": yaw, "pitch_deg": 0.0}
@@ -128,19 +126,28 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
                 frames = simulate_target(geometry, int(n_frames), rng, model)
             else:
                 frames = simulate_target_stereo(geometry, int(n_frames), rng, camera=stereo)
-            path = out / f"{cid}.npy"
-            with atomic_output(path, suffix=".npy") as tmp:
-                with open(tmp, "wb") as fh:
-                    np.save(fh, frames)
-            written.append(path)
+            with open(tmp / f"{cid}.npy", "wb") as fh:
+                np.save(fh, frames)
             entries.append((entry, None))
         simulation = ({"model": model.to_dict(), "seed": seed, "frames": int(n_frames)} if stereo is None else
                       {"sensor": "stereo", "preset": preset, "seed": seed, "frames": int(n_frames)})
-        return write_capture_set(out, camera, entries, overwrite=True, extra={"simulation": simulation})
-    except BaseException:
-        for p in written:                       # no partial capture set is left behind
-            p.unlink(missing_ok=True)
-        raise
+        write_capture_set(tmp, camera, entries, overwrite=True, extra={"simulation": simulation})
+    return read_capture_set(out)
+
+
+def _capture_set_files(folder: Path):
+    """The files of the capture set in ``folder`` (captures.json and its depth files), None if it holds none."""
+    from ..sources.captures import CAPTURES_JSON
+
+    index = folder / CAPTURES_JSON
+    if not index.is_file():
+        return None
+    try:
+        doc = json.loads(index.read_text())
+        depth = [c["depth"] for c in doc["captures"]]
+    except (OSError, ValueError, RecursionError, TypeError, KeyError):
+        return None
+    return [CAPTURES_JSON, *(d for d in depth if isinstance(d, str))]
 
 
 def validate_stereo(realdata=None, json_path=None, n_frames: int | None = None) -> int:

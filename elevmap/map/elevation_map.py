@@ -17,8 +17,12 @@ from noise_model.checks import check_points
 from . import fusion, grid_map, neighbours, prediction, queries, storage, visibility
 from .grid import GridGeometry
 from .layers import LAYERS, POINTS, UNKNOWN_VALUES
+from .settings import MIN_HEIGHT_VARIANCE, check_coordinates, check_map_memory
 
-__all__ = ["ElevationMap"]
+__all__ = ["ElevationMap", "BYTES_PER_CELL"]
+
+#: Memory of one cell [bytes]: its float64 layers and the fusion's partial grids (:class:`fusion.FusionWorkspace`).
+BYTES_PER_CELL = 8 * len(LAYERS) + fusion.WORKSPACE_BYTES_PER_CELL
 
 
 class ElevationMap:
@@ -54,6 +58,7 @@ class ElevationMap:
                  cleanup_stride: int = 1, nthreads: int | None = None):
         self.geometry = GridGeometry.centred(length_m, resolution_m, centre_xy)
         n = self.geometry.n
+        check_map_memory(n, BYTES_PER_CELL, self.geometry.resolution_m)
         self.data = np.empty((len(LAYERS), n, n))
         self.data[:] = np.array(UNKNOWN_VALUES)[:, None, None]
         self.fusion_params = fusion.FusionParams() if fusion_params is None else fusion_params
@@ -160,6 +165,10 @@ class ElevationMap:
         var = var.astype(np.float64, copy=False)
         if n_pts and not (np.all(np.isfinite(var)) and float(var.min()) > 0.0):
             raise ValueError("height_var must be finite and > 0 [m^2]")
+        if n_pts and float(var.min()) < MIN_HEIGHT_VARIANCE:
+            raise ValueError(f"height_var holds {float(var.min()):.3g} m^2, below the smallest variance a point "
+                             f"may claim ({MIN_HEIGHT_VARIANCE:g} m^2)")
+        check_coordinates(p, "points_map")
         if n_pts and float(var.max()) > 1e4:
             raise ValueError(f"height_var holds values up to {float(var.max()):.3g}: variances must be in m^2")
         hcov = None
@@ -179,6 +188,7 @@ class ElevationMap:
             origin = np.asarray(sensor_origin_map, dtype=np.float64)
             if origin.shape != (3,) or not np.all(np.isfinite(origin)):
                 raise ValueError(f"sensor_origin_map must be 3 finite numbers [m], got {sensor_origin_map!r}")
+            check_coordinates(origin, "sensor_origin_map")
         if impl not in ("numba", "numpy"):
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
         return self._update_validated(np.ascontiguousarray(p), var, hcov, stamp, origin, impl)

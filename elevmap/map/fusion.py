@@ -77,6 +77,7 @@ from noise_model.formulas import dersimonian_laird_tau2, reduced_chi2_quantile
 from noise_model.numba_config import JIT, resolve_threads, threads
 
 from .neighbours import ESTIMATORS
+from .settings import check_bool, check_int, check_real
 from .layers import (
     ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, LAYERS, MAX_HEIGHT, MIN_HEIGHT, NEIGHBOUR_SPREAD, INFO_SQ_SUM,
     INFO_SUM, POINTS, SCATTER, SPREAD, TIME, UPPER_BOUND, VARIANCE, ZERO_WHEN_UNKNOWN, clear_sums,
@@ -173,33 +174,22 @@ class FusionParams:
 
     def __post_init__(self):
         for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+            check_real(getattr(self, name), name, 0.0, lo_open=True)
         if self.min_variance >= self.max_variance:
             raise ValueError("min_variance must be below max_variance")
-        if self.min_horizontal_variance is not None and not (
-                math.isfinite(self.min_horizontal_variance) and self.min_horizontal_variance > 0):
-            raise ValueError(f"min_horizontal_variance must be finite and > 0, got {self.min_horizontal_variance!r}")
-        if int(self.change_min_points) < 1:
-            raise ValueError(f"change_min_points must be >= 1, got {self.change_min_points!r}")
-        if self.max_points_per_frame is not None and not (
-                math.isfinite(self.max_points_per_frame) and self.max_points_per_frame >= 1):
-            raise ValueError(f"max_points_per_frame must be None or >= 1, got {self.max_points_per_frame!r}")
-        if self.spread_alpha is not None and not (isinstance(self.spread_alpha, (int, float))
-                                                  and 1e-12 <= self.spread_alpha <= 0.5):
-            raise ValueError(f"spread_alpha must be None or in [1e-12, 0.5], got {self.spread_alpha!r}")
-        if not (isinstance(self.spread_ratio, (int, float)) and math.isfinite(self.spread_ratio)
-                and 1.0 <= self.spread_ratio <= 1e6):
-            raise ValueError(f"spread_ratio must be in [1, 1e6], got {self.spread_ratio!r}")
-        r = self.neighbour_radius
-        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or not 0 <= r <= 10:
-            raise ValueError(f"neighbour_radius must be an integer in [0, 10] cells, got {r!r}")
+        if self.min_horizontal_variance is not None:
+            check_real(self.min_horizontal_variance, "min_horizontal_variance", 0.0, lo_open=True)
+        check_int(self.change_min_points, "change_min_points", 1)
+        if self.max_points_per_frame is not None:
+            check_real(self.max_points_per_frame, "max_points_per_frame (None or a number)", 1.0)
+        check_bool(self.scatter_inflation, "scatter_inflation")
+        if self.spread_alpha is not None:
+            check_real(self.spread_alpha, "spread_alpha (None or a number)", 1e-12, 0.5)
+        check_real(self.spread_ratio, "spread_ratio", 1.0, 1e6)
+        check_int(self.neighbour_radius, "neighbour_radius [cells]", 0, 10)
         if self.neighbour_estimator not in ESTIMATORS:
             raise ValueError(f"neighbour_estimator must be one of {ESTIMATORS}, got {self.neighbour_estimator!r}")
-        m = self.min_points
-        if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or not 1 <= m <= 10000:
-            raise ValueError(f"min_points must be an integer in [1, 10000], got {m!r}")
+        check_int(self.min_points, "min_points", 1, 10000)
 
     def array(self, resolution_m: float) -> np.ndarray:
         """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off),
@@ -211,6 +201,10 @@ class FusionParams:
                          1.0 if self.scatter_inflation else 0.0,
                          -1.0 if self.spread_alpha is None else NormalDist().inv_cdf(1.0 - self.spread_alpha),
                          float(self.spread_ratio)])
+
+
+#: Memory of :class:`FusionWorkspace` per map cell [bytes]: PARTIALS x (NACC float64 sums + an int64 stamp).
+WORKSPACE_BYTES_PER_CELL = PARTIALS * (NACC * 8 + 8)
 
 
 class FusionWorkspace:

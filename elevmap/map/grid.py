@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .settings import check_coordinates
+
 __all__ = ["GridGeometry"]
 
 
@@ -91,6 +93,7 @@ class GridGeometry:
         c = np.asarray(centre_xy, dtype=np.float64)
         if c.shape != (2,) or not np.all(np.isfinite(c)):
             raise ValueError(f"centre_xy must be 2 finite numbers [m], got {centre_xy!r}")
+        check_coordinates(c, "centre_xy")
         res = self.resolution_m
         half = self.n // 2
         offset = 0.5 if self.n % 2 == 0 else 0.0

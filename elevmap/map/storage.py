@@ -21,8 +21,9 @@ import numpy as np
 from ..fileio import atomic_output
 from .fusion import FusionParams
 from .grid import GridGeometry
-from .layers import LAYERS, LAYERS_V1, LAYERS_V2, UNKNOWN_VALUES
+from .layers import ELEVATION, LAYERS, LAYERS_V1, LAYERS_V2, UNKNOWN_VALUES, VARIANCE
 from .queries import check_map
+from .settings import MAX_COORDINATE_M
 
 if TYPE_CHECKING:
     from .elevation_map import ElevationMap
@@ -92,12 +93,39 @@ def load(path) -> ElevationMap:
     FileNotFoundError
         If there is no such file.
     ValueError
-        If the file is truncated or corrupt, not an elevmap map, of another format version, or lacks
-        a key; the message names the file and the problem.
+        If the file is truncated or corrupt, not an elevmap map, of another format version, lacks a key,
+        or holds a map that breaks the map's invariants (an infinite value, a known cell without a finite
+        variance > 0, negative counts or variances, a window beyond the coordinate bound); the message
+        names the file and the problem.
     """
     from .elevation_map import ElevationMap      # not at the top: elevation_map imports this module
 
     return read_map(path, ElevationMap)
+
+
+def _check_invariants(data: np.ndarray, bad) -> None:
+    """What every map holds (the fusion keeps it; a file edited or corrupted past its CRC may not):
+    no infinite value in any layer; a cell with a height has a finite variance > 0; counts and sums are
+    finite and >= 0; spreads and horizontal variances are >= 0 where set."""
+    for k, name in enumerate(LAYERS):
+        if np.isinf(data[k]).any():
+            raise bad(f"layer '{name}' holds {int(np.isinf(data[k]).sum())} infinite values")
+    known = np.isfinite(data[ELEVATION])
+    var = data[VARIANCE][known]
+    if not (np.isfinite(var) & (var > 0)).all():
+        worst = var[~(np.isfinite(var) & (var > 0))][0]
+        raise bad(f"{int((~(np.isfinite(var) & (var > 0))).sum())} cells with a height have a variance that "
+                  f"is not finite and > 0 (e.g. {worst!r} m^2)")
+    for name in ("points", "info_sum", "info_sq_sum"):
+        a = data[LAYERS.index(name)]
+        if not (np.isfinite(a) & (a >= 0)).all():
+            raise bad(f"layer '{name}' holds values that are not finite and >= 0")
+    if not np.isfinite(data[LAYERS.index("scatter")]).all():
+        raise bad("layer 'scatter' holds non-finite values")
+    for name in ("variance", "spread", "neighbour_spread", "horizontal_variance_x", "horizontal_variance_y"):
+        a = data[LAYERS.index(name)]
+        if (a[np.isfinite(a)] < 0).any():
+            raise bad(f"layer '{name}' holds negative variances")
 
 
 class _FileProblem(ValueError):
@@ -182,6 +210,12 @@ def read_map(path, cls):
             if LAYERS.index(name) >= len(names):
                 extra[LAYERS.index(name) - len(names)][known] = 0.0
         data = np.concatenate([data, extra])
+    _check_invariants(data, bad)
+    if frames < 0 or math.isinf(last_stamp):
+        raise bad(f"frames = {frames} must be >= 0 and last_stamp = {last_stamp} finite (or NaN: no frame yet)")
+    corner = max(abs(gx0), abs(gy0), abs(gx0 + n), abs(gy0 + n)) * res
+    if corner > MAX_COORDINATE_M:
+        raise bad(f"the window reaches {corner:.3g} m, beyond the {MAX_COORDINATE_M:.0e} m a map position may have")
     params = text("fusion_params")
     settings = text("settings")
     try:

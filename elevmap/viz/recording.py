@@ -9,13 +9,12 @@ already there (a *successful* run does replace it).
 from __future__ import annotations
 
 import os
-import tempfile
 import warnings
 
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..fileio import new_file_mode
+from ..fileio import new_file_mode, new_temp_file, release_temp
 
 __all__ = ["AtomicRecording", "open_recording"]
 
@@ -30,9 +29,11 @@ class AtomicRecording:
 
     On a normal exit the stream is flushed, the file sink closed (footer written), the temporary
     file fsync'ed and renamed over ``path`` with :func:`os.replace`. On an exception (including
-    ``KeyboardInterrupt``) the temporary file is deleted and ``path`` is left untouched.
-    Without ``with``, call :meth:`finalise` or :meth:`abort` yourself. A process killed outright
-    (SIGKILL, power loss) can leave a hidden ``.<name>.<random>.part`` file, never a partial ``path``.
+    ``KeyboardInterrupt``, and SIGTERM/SIGHUP under :func:`elevmap.fileio.handle_signals`) the temporary
+    file is deleted and ``path`` is left untouched. Without ``with``, call :meth:`finalise` or
+    :meth:`abort` yourself. A process killed outright (SIGKILL, power loss) can leave a hidden
+    ``.<name>.elevmap-tmp-<pid>-<random>.part`` file, never a partial ``path``; the next run writing
+    ``path`` removes it (:func:`elevmap.fileio.remove_leftovers`).
 
     With ``spawn=True`` the ``rerun`` viewer executable must be on PATH (it is in the venv's
     ``bin``). If the viewer is unreachable (no display, closed early) :meth:`finalise` warns
@@ -59,10 +60,7 @@ class AtomicRecording:
         if self.path is not None:
             if os.path.isdir(self.path):
                 raise IsADirectoryError(f"{self.path} is a directory, not an .rrd file path")
-            directory = os.path.dirname(self.path)
-            fd, self.tmp_path = tempfile.mkstemp(prefix=f".{os.path.basename(self.path)}.", suffix=".part",
-                                                 dir=directory)
-            os.close(fd)
+            self.tmp_path = str(new_temp_file(self.path, ".part"))
         try:
             self.recording = rr.RecordingStream(application_id, recording_id=recording_id)
             sinks = []
@@ -105,7 +103,8 @@ class AtomicRecording:
                 # A viewer that died or never started must not cost the user the file: the gRPC sink
                 # fails the flush, the file sink is unaffected and is closed by disconnect() below.
                 if not (self._viewer and "grpc" in str(exc).lower()):
-                    raise
+                    raise OSError(f"{self.path}: the recording could not be written ({exc}); is its disk "
+                                  "full?") from None
                 warnings.warn(f"rerun viewer unreachable ({exc}); the recording file is still written",
                               RuntimeWarning, stacklevel=2)
             self.recording.disconnect()          # closes the file sink and writes the footer
@@ -114,6 +113,7 @@ class AtomicRecording:
                     os.fsync(fh.fileno())
                 os.chmod(self.tmp_path, new_file_mode(self.path))
                 os.replace(self.tmp_path, self.path)
+                release_temp(self.tmp_path)
                 self.tmp_path = None
                 _fsync_dir(os.path.dirname(self.path))
         except BaseException:
@@ -138,10 +138,7 @@ class AtomicRecording:
 
     def _remove_tmp(self) -> None:
         if self.tmp_path is not None:
-            try:
-                os.unlink(self.tmp_path)
-            except FileNotFoundError:
-                pass
+            release_temp(self.tmp_path, remove=True)
             self.tmp_path = None
 
 
@@ -166,7 +163,7 @@ def open_recording(path, application_id: str, recording_id: str | None = None, s
     ----------
     path : str or os.PathLike or None
         Destination ``.rrd`` file. Data goes to a hidden temporary file in the same folder
-        (``.<name>.<random>.part``) until :meth:`AtomicRecording.finalise`. None: no file.
+        (``.<name>.elevmap-tmp-<pid>-<random>.part``) until :meth:`AtomicRecording.finalise`. None: no file.
     application_id : str
         rerun application id (the viewer keys blueprints on it).
     recording_id : str, optional

@@ -19,12 +19,15 @@ def test_demo_writes_a_recording_that_replays_to_the_same_map(tmp_path):
     np.testing.assert_array_equal(replayed["map"].data, summary["map"].data)
 
 
-def test_cli_demo_prints_the_error_and_refuses_nothing(tmp_path, capsys):
+def test_cli_demo_prints_the_error_and_replaces_files_only_with_overwrite(tmp_path, capsys):
     path = tmp_path / "demo.rrd"
     assert main(["demo", "--rrd", str(path), "--frames", "3", "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "median |error|" in out and "ms per frame" in out and path.is_file()
-    assert main(["demo", "--rrd", str(path), "--frames", "3", "--no-progress"]) == 0     # the demo's own file
+    before = path.read_bytes()
+    assert main(["demo", "--rrd", str(path), "--frames", "3", "--no-progress"]) == 2
+    assert "exists; pass --overwrite" in capsys.readouterr().err and path.read_bytes() == before
+    assert main(["demo", "--rrd", str(path), "--frames", "3", "--no-progress", "--overwrite"]) == 0
 
 
 def test_cli_run_refuses_to_overwrite_and_replay_needs_rrd(tmp_path, capsys):
