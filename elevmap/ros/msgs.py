@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 
 __all__ = ["GRID_MAP_ROS1", "GRID_MAP_ROS2", "FOXGLOVE_ROS1", "FOXGLOVE_ROS2", "GRID_MAP_ROS1_MD5",
-           "GRID_MAP", "GRID_MAP_INFO", "GRID", "typestore", "message_definition"]
+           "GRID_MAP", "GRID_MAP_INFO", "GRID", "TF_MESSAGE", "typestore", "message_definition"]
 
 #: Type names (rosbags spells every type ``pkg/msg/Name``, ROS 1 types too).
 GRID_MAP = "grid_map_msgs/msg/GridMap"
@@ -85,6 +85,9 @@ uint8[] data
 
 _VECTOR2 = "float64 x\nfloat64 y\n"
 
+#: tf2_msgs/TFMessage, which rosbags' ROS 1 store lacks (ROS 1 md5 94810edda583a504dfda3829e70d7eec).
+TF_MESSAGE = {"tf2_msgs/msg/TFMessage": "geometry_msgs/TransformStamped[] transforms\n"}
+
 #: foxglove_msgs, ROS 1 (``time`` stamp).
 FOXGLOVE_ROS1 = {
     "foxglove_msgs/msg/Vector2": _VECTOR2,
@@ -123,6 +126,8 @@ def typestore(ros_version: int):
     for name, text in {**(GRID_MAP_ROS1 if ros_version == 1 else GRID_MAP_ROS2),
                        **(FOXGLOVE_ROS1 if ros_version == 1 else FOXGLOVE_ROS2)}.items():
         types.update(get_types_from_msg(text, name))
+    if "tf2_msgs/msg/TFMessage" not in store.types:
+        types.update(get_types_from_msg(TF_MESSAGE["tf2_msgs/msg/TFMessage"], "tf2_msgs/msg/TFMessage"))
     store.register(types)
     return store
 
