@@ -159,7 +159,8 @@ def map_error(emap: ElevationMap, truth_height) -> dict:
 
 def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=None, spawn: bool = False,
                 truth_height=None, show_progress: bool = True, total: int | None = None,
-                application_id: str = "elevmap", nthreads: int | None = None, notes: str | None = None) -> dict:
+                application_id: str = "elevmap", nthreads: int | None = None, notes: str | None = None,
+                callbacks=()) -> dict:
     """Map a sequence of :class:`Frame` records; optionally record everything to rerun.
 
     Parameters
@@ -176,6 +177,9 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
         A progress bar (tqdm).
     total : int, optional
         Number of frames, for the progress bar.
+    callbacks : sequence of callable
+        Consumers of the map as it is built (a bag writer, a live view): each is called as
+        ``callback(frame, T_map_cam, emap)`` after every frame is fused, ``T_map_cam`` the pose used.
 
     Raises
     ------
@@ -231,6 +235,8 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
                 scores.append(score)
             if logger is not None and n_frames % config.log_every == 0:
                 logger.log(n_frames, frame, T, emap, mapper, stats, score, trail, first_stamp)
+            for callback in callbacks:
+                callback(frame, T, emap)
             n_frames += 1
         if n_frames == 0:
             raise ValueError("the source gave no depth frames: nothing to map")
