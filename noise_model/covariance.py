@@ -79,9 +79,11 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
         Points on a left / right depth edge (see :func:`noise_model.depth_edges`); a point on both
         (a one-pixel-wide object) gets the larger of sigma_L and sigma_R.
     fx, fy : float, optional
-        Focal lengths [px] for the interior lateral term; the D435's 848x480 default (424 px).
+        Focal lengths [px] for the interior lateral term; the D435's 848x480 default (424 px). A
+        disparity-family model not bound to a frame (``model.frame_fx_px`` None) needs ``fx``: its sigma_z
+        is z^2 sigma_d(theta) / (fx B).
     model : SensorModel
-        Noise coefficients (the paper's by default).
+        Noise model (the paper's by default).
     z_noise : array_like, shape (N,), optional
         Depth [m] at which sigma_z is evaluated (default: the points' own z). Pass a denoised depth
         (:func:`noise_model.plane_depths`) so that a point's weight does not depend on its own noise.
@@ -105,6 +107,13 @@ def point_covariances(points_cam, theta, edge_left=None, edge_right=None, *, fx:
     th = check_angles(theta, n)
     left = check_mask(edge_left, n, "edge_left")
     right = check_mask(edge_right, n, "edge_right")
+    if not isinstance(model, SensorModel):
+        raise ValueError(f"model must be a noise_model.SensorModel, got {type(model).__name__}")
+    if model.family == "disparity" and model.frame_fx_px is None:
+        if fx is None:
+            raise ValueError(f"sensor model {model.name!r} is of the disparity family: pass the frame's fx [px] "
+                             "(its sigma_d is in pixels of the frame)")
+        model = model.with_focal(fx)
     f_default = model.focal_px(848, 480)
     fx = check_positive_scalar(f_default if fx is None else fx, "fx", upper=1e5, unit=" px")
     fy = check_positive_scalar(f_default if fy is None else fy, "fy", upper=1e5, unit=" px")

@@ -30,6 +30,20 @@ its 1280-wide scale, so f = 0.6 * 640 = 384 px and HFOV = 2 atan(320 / 384) = 79
 unit-test D435 recording (640x480, fx = 390.4 px, HFOV 78.7 deg) agrees within unit-to-unit spread.
 The principal point is the image centre, ((W - 1) / 2, (H - 1) / 2), in the pixel-centre convention
 of RealSense and OpenCV (integer coordinates are pixel centres).
+
+Model families
+--------------
+``SensorModel.family`` selects the form of sigma_z. ``"paper"`` (the default, and the model of the
+constant ``D435``) is Ahn et al.'s polynomial above. ``"disparity"`` models the noise where a stereo
+camera makes it, in the disparity d = f B / z::
+
+    sigma_z(z, theta) = z^2 sigma_d(theta) / (f B),   sigma_d(theta) = s0 + s1 theta^2   [px]
+
+with f the focal length [px] of the frame (from its intrinsics: the same camera at 424x240 has half
+the focal length of 848x480 and twice the depth noise per pixel of disparity) and B the baseline [m].
+Its sigma_z needs f: the kernels take it from the frame's K, the NumPy functions from ``fx_px`` or a
+model bound to a frame with :meth:`SensorModel.with_focal`. The lateral terms (sigma_L, sigma_R, the
+pixel footprint) are the same in both families.
 """
 
 from __future__ import annotations
@@ -43,10 +57,23 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from .checks import MAX_PLAUSIBLE_DEPTH_M, check_positive_scalar
-from .formulas import angle_gain, expected_sigma_z_sq, sigma_z_from_gain
+from .formulas import (
+    angle_gain, disparity_angle_gain, disparity_expected_sigma_z_sq, disparity_sigma_z_from_gain, expected_sigma_z_sq,
+    sigma_z_from_gain,
+)
 
 __all__ = ["SensorModel", "D435", "axial_sigma", "axial_variance", "expected_rms_error", "THETA_MAX_DEFAULT",
-           "THETA_QUADRATURE", "THETA_GRID", "axial_sigma_unchecked", "axial_variance_unchecked"]
+           "THETA_QUADRATURE", "THETA_GRID", "axial_sigma_unchecked", "axial_variance_unchecked", "FAMILIES",
+           "MODEL_FORMAT", "MODEL_FORMAT_DISPARITY"]
+
+#: The model families of :class:`SensorModel` (see the module docstring).
+FAMILIES = ("paper", "disparity")
+
+#: The model file's format: a paper-family model keeps the first version (files written before the
+#: disparity family existed read the same); a disparity-family model is written as the second, which a
+#: reader that knows only the paper's family rejects instead of reading it as the paper's.
+MODEL_FORMAT = "elevmap-sensor-model/1"
+MODEL_FORMAT_DISPARITY = "elevmap-sensor-model/2"
 
 #: Default cap on the incidence angle [rad]: 80 deg. The paper measured up to 75 deg; its theta term
 #: diverges at 90 deg, where a stereo camera sees nothing at all. At 80 deg and 1 m sigma_z is already
@@ -59,14 +86,14 @@ _HFOV_4_3_DEG = math.degrees(2.0 * math.atan(320.0 / 384.0))
 
 @dataclass(frozen=True)
 class SensorModel:
-    """A depth camera's geometry and its noise model (coefficients of Ahn et al.'s functional form).
+    """A depth camera's geometry and its noise model (Ahn et al.'s form, or the disparity family).
 
     Attributes
     ----------
     name : str
         Free-form name ("D435 (Ahn et al. 2019)" or a user's own fit).
     axial_coefficients : tuple of 4 floats
-        (c0 [m], c1 [-], c2 [1/m], c_theta [m^-1/2]) of
+        (c0 [m], c1 [-], c2 [1/m], c_theta [m^-1/2]) of the paper's family,
         sigma_z = c0 + c1 z + c2 z^2 + c_theta z^(3/2) theta / (pi/2 - theta)^2.
     sigma_L, sigma_R : float
         Lateral noise [m] across left and right depth edges.
@@ -78,6 +105,15 @@ class SensorModel:
         Incidence angles at or beyond this are capped to it [rad].
     hfov_deg : dict
         Horizontal field of view [deg] per (width, height) mode.
+    family : {"paper", "disparity"}
+        Which form sigma_z takes (module docstring); "paper" by default.
+    disparity_sigma_px : tuple of 2 floats
+        (s0 [px], s1 [px / rad^2]) of the disparity family, sigma_d(theta) = s0 + s1 theta^2; s0 > 0,
+        s1 >= 0 (sigma_d grows with the slant; a fit that finds no growth gives 0). Unused by the paper's
+        family.
+    frame_fx_px : float or None
+        The focal length [px] of the frame the model is applied to (:meth:`with_focal`), for the disparity
+        family's sigma_z in the NumPy functions; a property of the frame, never saved.
     """
 
     name: str = "D435 (Ahn et al. 2019)"
@@ -95,6 +131,25 @@ class SensorModel:
             (424, 240): _HFOV_16_9_DEG,
         }
     )
+    family: str = "paper"
+    disparity_sigma_px: tuple = (0.08, 0.0)
+    frame_fx_px: float | None = None
+
+    def __post_init__(self):
+        if self.family not in FAMILIES:
+            raise ValueError(f"sensor model {self.name!r}: family must be one of {FAMILIES}, got {self.family!r}")
+        try:
+            sd = tuple(float(x) for x in self.disparity_sigma_px)
+        except (TypeError, ValueError):
+            raise ValueError(f"sensor model {self.name!r}: disparity_sigma_px must be 2 numbers (s0 [px], "
+                             f"s1 [px/rad^2]), got {self.disparity_sigma_px!r}") from None
+        if len(sd) != 2 or not all(math.isfinite(x) for x in sd) or not sd[0] > 0 or sd[1] < 0 or sd[0] > 10.0:
+            raise ValueError(f"sensor model {self.name!r}: disparity_sigma_px must be (s0, s1) with 0 < s0 <= 10 px "
+                             f"and s1 >= 0 px/rad^2, finite, got {self.disparity_sigma_px!r}")
+        object.__setattr__(self, "disparity_sigma_px", sd)
+        if self.frame_fx_px is not None:
+            object.__setattr__(self, "frame_fx_px",
+                               check_positive_scalar(self.frame_fx_px, "frame_fx_px", upper=1e5, unit=" px"))
 
     # -- the paper's coefficients under their own names -------------------------------------------
     @property
@@ -134,9 +189,56 @@ class SensorModel:
         """Vertical field of view [deg] implied by square pixels."""
         return math.degrees(2.0 * math.atan(0.5 * height / self.focal_px(width, height)))
 
-    def params_array(self) -> np.ndarray:
-        """The noise parameters packed for numba kernels: c0, c1, c2, c_theta, theta_max, sigma_L, sigma_R."""
-        return np.array([*map(float, self.axial_coefficients), self.theta_max_rad, self.sigma_L, self.sigma_R])
+    @property
+    def s0(self) -> float:
+        """sigma_d at theta = 0 [px] (disparity family)."""
+        return float(self.disparity_sigma_px[0])
+
+    @property
+    def s1(self) -> float:
+        """Growth of sigma_d with theta^2 [px / rad^2] (disparity family)."""
+        return float(self.disparity_sigma_px[1])
+
+    def disparity_depth_coefficients(self, fx_px: float | None = None) -> tuple[float, float]:
+        """(s0 / (f B), s1 / (f B)) [1/m]: the disparity family's sigma_d in depth units at focal length f.
+
+        Parameters
+        ----------
+        fx_px : float, optional
+            The frame's focal length [px]; ``frame_fx_px`` when None (a ``ValueError`` without either:
+            a disparity in pixels means nothing in metres without the focal length).
+        """
+        f = self.frame_fx_px if fx_px is None else check_positive_scalar(fx_px, "fx_px", upper=1e5, unit=" px")
+        if f is None:
+            raise ValueError(f"sensor model {self.name!r} is of the disparity family: its sigma_z needs the frame's "
+                             "focal length (pass fx_px, or bind the model to the frame with model.with_focal(K[0, 0]))")
+        fb = f * float(self.baseline_m)
+        return self.s0 / fb, self.s1 / fb
+
+    def params_array(self, fx_px: float | None = None) -> np.ndarray:
+        """The noise parameters packed for numba kernels: c0, c1, c2, c_theta, theta_max, sigma_L, sigma_R, family.
+
+        The paper's family: its coefficients and family 0. The disparity family: 0, 0, s0 / (f B),
+        s1 / (f B), ..., family 1, with f = ``fx_px`` (the frame's focal length [px]; ``frame_fx_px`` when
+        None): sigma_z = z^2 (c2 + c_theta theta^2) (:mod:`noise_model.formulas`).
+        """
+        if self.family == "disparity":
+            c, g = self.disparity_depth_coefficients(fx_px)
+            return np.array([0.0, 0.0, c, g, self.theta_max_rad, self.sigma_L, self.sigma_R, 1.0])
+        return np.array([*map(float, self.axial_coefficients), self.theta_max_rad, self.sigma_L, self.sigma_R, 0.0])
+
+    def with_disparity(self, s0: float, s1: float = 0.0, **changes) -> "SensorModel":
+        """A copy of the disparity family with sigma_d(theta) = s0 + s1 theta^2 [px] (s0 > 0, s1 >= 0).
+
+        ``D435.with_disparity(0.08)`` is Intel's typical subpixel accuracy as a noise model:
+        sigma_z = 0.08 z^2 / (f B).
+        """
+        changes.setdefault("name", f"D435 (disparity noise, sigma_d = {float(s0):g} + {float(s1):g} theta^2 px)")
+        return replace(self, family="disparity", disparity_sigma_px=(float(s0), float(s1)), **changes)
+
+    def with_focal(self, fx_px: float) -> "SensorModel":
+        """A copy bound to a frame of focal length ``fx_px`` [px] (what the disparity family's sigma_z needs)."""
+        return replace(self, frame_fx_px=check_positive_scalar(fx_px, "fx_px", upper=1e5, unit=" px"))
 
     def with_coefficients(self, coefficients, **changes) -> "SensorModel":
         """A copy with other axial coefficients (for example a user's own fit)."""
@@ -147,18 +249,34 @@ class SensorModel:
 
     # -- persistence: a user's fit replaces the paper's everywhere --------------------------------
     def to_dict(self) -> dict:
+        """The model as plain JSON types: :data:`MODEL_FORMAT` for the paper's family (the same keys as
+        before the disparity family existed), :data:`MODEL_FORMAT_DISPARITY` with ``family`` and
+        ``disparity_sigma_px`` for the disparity family. ``frame_fx_px`` (a property of a frame) is not
+        saved."""
         d = asdict(self)
         d["axial_coefficients"] = list(self.axial_coefficients)
         d["hfov_deg"] = [[w, h, v] for (w, h), v in self.hfov_deg.items()]
-        d["format"] = "elevmap-sensor-model/1"
+        del d["frame_fx_px"]
+        if self.family == "paper":
+            del d["family"], d["disparity_sigma_px"]
+            d["format"] = MODEL_FORMAT
+        else:
+            d["disparity_sigma_px"] = list(self.disparity_sigma_px)
+            d["format"] = MODEL_FORMAT_DISPARITY
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "SensorModel":
-        if d.get("format") != "elevmap-sensor-model/1":
-            raise ValueError(f"not an elevmap sensor model (format {d.get('format')!r})")
+        """Read :meth:`to_dict`'s output (either format); a missing or bad key raises ``ValueError`` naming it."""
+        if not isinstance(d, dict) or d.get("format") not in (MODEL_FORMAT, MODEL_FORMAT_DISPARITY):
+            fmt = d.get("format") if isinstance(d, dict) else type(d).__name__
+            raise ValueError(f"not an elevmap sensor model (format {fmt!r})")
         try:
             hfov = {(int(w), int(h)): float(v) for w, h, v in d["hfov_deg"]}
+            extra = {}
+            if d["format"] == MODEL_FORMAT_DISPARITY:
+                extra = {"family": str(d["family"]),
+                         "disparity_sigma_px": tuple(float(x) for x in d["disparity_sigma_px"])}
             model = cls(
                 name=str(d["name"]),
                 axial_coefficients=tuple(float(x) for x in d["axial_coefficients"]),
@@ -168,11 +286,16 @@ class SensorModel:
                 subpixel=float(d["subpixel"]),
                 theta_max_rad=float(d["theta_max_rad"]),
                 hfov_deg=hfov,
+                **extra,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"sensor model is missing or has a bad key: {exc}") from None
         if len(model.axial_coefficients) != 4:
             raise ValueError("sensor model needs exactly 4 axial coefficients")
+        if not all(math.isfinite(c) for c in model.axial_coefficients):
+            raise ValueError("sensor model's axial_coefficients must be finite")
+        if not (model.baseline_m > 0 and math.isfinite(model.baseline_m)):
+            raise ValueError(f"sensor model's baseline_m must be a positive length [m], got {model.baseline_m!r}")
         return model
 
     def save(self, path) -> None:
@@ -197,15 +320,18 @@ class SensorModel:
                 d = json.load(fh)
         except json.JSONDecodeError as exc:
             raise ValueError(f"{path}: not valid JSON ({exc})") from None
-        return cls.from_dict(d)
+        try:
+            return cls.from_dict(d)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
 
 
 #: The D435 with the paper's coefficients.
 D435 = SensorModel()
 
 
-def axial_sigma(z, theta=0.0, model: SensorModel = D435):
-    """Axial (depth) noise sigma_z [m] of Ahn et al. (2019), broadcasting over any array shapes.
+def axial_sigma(z, theta=0.0, model: SensorModel = D435, fx_px: float | None = None):
+    """Axial (depth) noise sigma_z [m] of the model (Ahn et al. 2019 by default), broadcasting over any shapes.
 
     Parameters
     ----------
@@ -216,6 +342,9 @@ def axial_sigma(z, theta=0.0, model: SensorModel = D435):
         or beyond ``model.theta_max_rad`` (80 deg by default) are capped to it.
     model : SensorModel
         Coefficients; the paper's D435 by default.
+    fx_px : float, optional
+        The frame's focal length [px], for a disparity-family model (sigma_z = z^2 sigma_d(theta) / (f B));
+        the model's ``frame_fx_px`` when None. The paper's family ignores it.
 
     Returns
     -------
@@ -225,7 +354,8 @@ def axial_sigma(z, theta=0.0, model: SensorModel = D435):
     Raises
     ------
     ValueError
-        If z is not finite and positive, looks like millimetres, or theta is not finite radians.
+        If z is not finite and positive, looks like millimetres, or theta is not finite radians; if a
+        disparity-family model has no focal length.
     """
     z_a = np.asarray(z, dtype=np.float64)
     t_a = np.asarray(theta, dtype=np.float64)
@@ -237,8 +367,20 @@ def axial_sigma(z, theta=0.0, model: SensorModel = D435):
         raise ValueError("theta must be finite [rad]")
     if t_a.size and float(np.abs(t_a).max()) > 2 * np.pi:
         raise ValueError(f"theta holds values up to {float(np.abs(t_a).max()):.1f}: theta must be in radians")
-    out = axial_sigma_unchecked(z_a, t_a, model)
+    out = axial_sigma_unchecked(z_a, t_a, _bound(model, fx_px))
     return float(out) if out.ndim == 0 else out
+
+
+def _bound(model: SensorModel, fx_px) -> SensorModel:
+    """``model`` bound to the focal length ``fx_px`` where it is of the disparity family and one is given; checked
+    here so that a disparity model without a focal length fails at the public entry."""
+    if not isinstance(model, SensorModel):
+        raise ValueError(f"model must be a noise_model.SensorModel, got {type(model).__name__}")
+    if model.family == "disparity":
+        if fx_px is not None:
+            model = model.with_focal(fx_px)
+        model.disparity_depth_coefficients()
+    return model
 
 
 def axial_sigma_unchecked(z, theta, model: SensorModel = D435):
@@ -251,14 +393,20 @@ def axial_sigma_unchecked(z, theta, model: SensorModel = D435):
     theta : ndarray
         Incidence angle [rad], finite; its sign is ignored and it is capped at ``model.theta_max_rad``.
     model : SensorModel
+        A disparity-family model must be bound to the frame's focal length (:meth:`SensorModel.with_focal`).
 
     Returns
     -------
     ndarray
-        sigma_z [m] (:func:`noise_model.formulas.sigma_z_from_gain`), the broadcast shape of ``z`` and ``theta``.
+        sigma_z [m] (:func:`noise_model.formulas.sigma_z_from_gain`, or
+        :func:`noise_model.formulas.disparity_sigma_z_from_gain` for the disparity family), the broadcast shape
+        of ``z`` and ``theta``.
     """
-    c0, c1, c2, ct = (float(c) for c in model.axial_coefficients)
     t = np.minimum(np.abs(theta), model.theta_max_rad)
+    if model.family == "disparity":
+        c, g1 = model.disparity_depth_coefficients()
+        return disparity_sigma_z_from_gain(z, disparity_angle_gain(t, g1), c)
+    c0, c1, c2, ct = (float(c) for c in model.axial_coefficients)
     return sigma_z_from_gain(z, angle_gain(t, ct), c0, c1, c2)
 
 
@@ -282,7 +430,7 @@ THETA_QUADRATURE = _gh_rule(9)
 THETA_GRID = _grid_rule(33, 4.0)
 
 
-def axial_variance(z, theta=0.0, theta_std=0.0, model: SensorModel = D435):
+def axial_variance(z, theta=0.0, theta_std=0.0, model: SensorModel = D435, fx_px: float | None = None):
     """E[sigma_z^2] [m^2] of Ahn et al.'s model when theta is an estimate: theta_true ~ N(theta, theta_std^2).
 
     The angle term of sigma_z grows as theta / (pi/2 - theta)^2, so an angle estimated from noisy depth
@@ -301,12 +449,15 @@ def axial_variance(z, theta=0.0, theta_std=0.0, model: SensorModel = D435):
     theta_std : array_like
         Standard deviation of the estimate [rad], finite and >= 0.
     model : SensorModel
+    fx_px : float, optional
+        The frame's focal length [px] for a disparity-family model (as :func:`axial_sigma`).
 
     Returns
     -------
     ndarray or float
         [m^2], the broadcast shape of the inputs.
     """
+    model = _bound(model, fx_px)
     axial_sigma(z, theta, model)             # validates z and theta
     s_a = np.asarray(theta_std, dtype=np.float64)
     if not np.all(np.isfinite(s_a)) or np.any(s_a < 0):
@@ -319,17 +470,22 @@ def axial_variance(z, theta=0.0, theta_std=0.0, model: SensorModel = D435):
 
 
 def _gain_moments_unchecked(theta, theta_std, model: SensorModel = D435):
-    """(E[g], E[g^2]) of the angle gain g(theta) = c_theta t / (pi/2 - t)^2, t = min(|theta|, theta_max), for
-    theta ~ N(theta, theta_std^2) by :data:`THETA_QUADRATURE` or :data:`THETA_GRID` (the nodes summed in
-    order, as the kernel)."""
-    ct = float(model.axial_coefficients[3])
+    """(E[g], E[g^2]) of the angle gain g(theta) = c_theta t / (pi/2 - t)^2 (the disparity family:
+    (s1 / (f B)) t^2), t = min(|theta|, theta_max), for theta ~ N(theta, theta_std^2) by
+    :data:`THETA_QUADRATURE` or :data:`THETA_GRID` (the nodes summed in order, as the kernel)."""
+    if model.family == "disparity":
+        ct = model.disparity_depth_coefficients()[1]
+        gain = disparity_angle_gain
+    else:
+        ct = float(model.axial_coefficients[3])
+        gain = angle_gain
     tmax = float(model.theta_max_rad)
     out = []
     for xs, ws in (THETA_QUADRATURE, THETA_GRID):
         eg = np.zeros(np.shape(theta))
         eg2 = np.zeros(np.shape(theta))
         for x, w in zip(xs, ws):
-            g = angle_gain(np.minimum(np.abs(theta + theta_std * x), tmax), ct)
+            g = gain(np.minimum(np.abs(theta + theta_std * x), tmax), ct)
             eg = eg + w * g
             eg2 = eg2 + w * (g * g)
         out.append((eg, eg2))
@@ -339,9 +495,12 @@ def _gain_moments_unchecked(theta, theta_std, model: SensorModel = D435):
 
 def axial_variance_unchecked(z, theta, theta_std, model: SensorModel = D435):
     """:func:`axial_variance` without the input checks (z > 0 [m], theta finite, theta_std >= 0 [rad]):
-    E[sigma_z^2] [m^2] = a^2 + 2 a k E[g] + k^2 E[g^2] (:func:`noise_model.formulas.expected_sigma_z_sq`)."""
-    c0, c1, c2, _ = (float(c) for c in model.axial_coefficients)
+    E[sigma_z^2] [m^2] = a^2 + 2 a k E[g] + k^2 E[g^2] (:func:`noise_model.formulas.expected_sigma_z_sq`; the
+    disparity family, bound to its frame's focal length: :func:`noise_model.formulas.disparity_expected_sigma_z_sq`)."""
     eg, eg2 = _gain_moments_unchecked(theta, theta_std, model)
+    if model.family == "disparity":
+        return disparity_expected_sigma_z_sq(z, eg, eg2, model.disparity_depth_coefficients()[0])
+    c0, c1, c2, _ = (float(c) for c in model.axial_coefficients)
     return expected_sigma_z_sq(z, eg, eg2, c0, c1, c2)
 
 

@@ -23,6 +23,16 @@ diverges), sigma_z [m]. When theta is an estimate, theta_true ~ N(theta, s^2), t
 
     E[sigma_z^2] = a^2 + 2 a k E[g] + k^2 E[g^2],   a = c0 + c1 z + c2 z^2,   k = z^(3/2).
 
+Axial noise of the disparity family (docs/noise-model.md)
+---------------------------------------------------------
+A stereo camera measures disparity d = f B / z; an error of sigma_d pixels in d is an error of
+z^2 sigma_d / (f B) in depth. With sigma_d(theta) = s0 + s1 theta^2 [px]::
+
+    sigma_z(z, theta) = z^2 (c + g),   c = s0 / (f B),   g(theta) = (s1 / (f B)) theta^2
+
+f the focal length [px] of the frame, B the baseline [m], so c [1/m] and g [1/m]. With an uncertain
+angle, E[sigma_z^2] = z^4 (c^2 + 2 c E[g] + E[g^2]).
+
 Wilson-Hilferty quantile of the chi-square distribution
 -------------------------------------------------------
 With k degrees of freedom and z_q the standard normal quantile of probability q (Wilson & Hilferty 1931)::
@@ -53,7 +63,8 @@ import math
 
 import numpy as np
 
-__all__ = ["angle_gain", "sigma_z_from_gain", "expected_sigma_z_sq", "reduced_chi2_quantile", "dersimonian_laird_tau2"]
+__all__ = ["angle_gain", "sigma_z_from_gain", "expected_sigma_z_sq", "disparity_angle_gain", "disparity_sigma_z_from_gain",
+           "disparity_expected_sigma_z_sq", "reduced_chi2_quantile", "dersimonian_laird_tau2"]
 
 _HALF_PI = 0.5 * math.pi
 
@@ -125,6 +136,65 @@ def expected_sigma_z_sq(z, mean_gain, mean_gain_sq, c0, c1, c2):
     a = c0 + c1 * z + c2 * z * z
     k = z * np.sqrt(z)
     return a * a + 2.0 * a * k * mean_gain + k * k * mean_gain_sq
+
+
+def disparity_angle_gain(theta, s1_depth):
+    """The disparity family's angle gain g = (s1 / (f B)) theta^2 [1/m].
+
+    Parameters
+    ----------
+    theta : float or ndarray
+        Incidence angle [rad], |theta| capped by the caller (``theta_max_rad``) as for the paper's family.
+    s1_depth : float
+        s1 / (f B): the angle coefficient s1 [px / rad^2] of sigma_d over f B [px m].
+
+    Returns
+    -------
+    float or ndarray
+        g, the shape of ``theta``; sigma_z = z^2 (c + g).
+    """
+    return s1_depth * theta * theta
+
+
+def disparity_sigma_z_from_gain(z, gain, c):
+    """sigma_z = z^2 (c + g) [m], the disparity family's axial noise: z^2 sigma_d(theta) / (f B).
+
+    Parameters
+    ----------
+    z : float or ndarray
+        Depth [m], > 0.
+    gain : float or ndarray
+        g = (s1 / (f B)) theta^2 [1/m] (:func:`disparity_angle_gain`); broadcasts with ``z``.
+    c : float
+        s0 / (f B) [1/m].
+
+    Returns
+    -------
+    float or ndarray
+        sigma_z [m], the broadcast shape of ``z`` and ``gain``.
+    """
+    return z * z * (c + gain)
+
+
+def disparity_expected_sigma_z_sq(z, mean_gain, mean_gain_sq, c):
+    """E[sigma_z^2] = z^4 (c^2 + 2 c E[g] + E[g^2]) [m^2]: the disparity family over an uncertain angle.
+
+    Parameters
+    ----------
+    z : float or ndarray
+        Depth [m], > 0.
+    mean_gain, mean_gain_sq : float or ndarray
+        E[g] and E[g^2] of :func:`disparity_angle_gain` over the angle's distribution [1/m], [1/m^2].
+    c : float
+        s0 / (f B) [1/m].
+
+    Returns
+    -------
+    float or ndarray
+        [m^2], the broadcast shape of the inputs.
+    """
+    z2 = z * z
+    return z2 * z2 * (c * c + 2.0 * c * mean_gain + mean_gain_sq)
 
 
 def reduced_chi2_quantile(dof, z):

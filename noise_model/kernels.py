@@ -28,7 +28,10 @@ from numba import njit, prange
 from .checks import check_depth, check_intrinsics, check_pose_cov, check_positive_scalar, check_transform
 from .covariance import point_covariances, to_map_frame
 from .d435 import D435, THETA_GRID, THETA_QUADRATURE, SensorModel, axial_sigma_unchecked
-from .formulas import angle_gain, expected_sigma_z_sq, reduced_chi2_quantile, sigma_z_from_gain
+from .formulas import (
+    angle_gain, disparity_angle_gain, disparity_expected_sigma_z_sq, disparity_sigma_z_from_gain, expected_sigma_z_sq,
+    reduced_chi2_quantile, sigma_z_from_gain,
+)
 from .geometry import (
     DEGENERATE_REL, EDGE_JUMP_REL, EDGE_JUMP_SIGMAS, MIXED_WINDOW_Z, NORMAL_MIN_POINTS, ROW_MEDIAN_HALF_PX,
     RSS_FLOOR_REL, SURFACE_HALF_ROWS, WINDOW_RADIUS_BLOCKS, centred_moments, default_block_px, deproject,
@@ -129,6 +132,35 @@ _centred = njit(**JIT)(centred_moments)
 _sigma_z = njit(**JIT)(sigma_z_from_gain)
 _angle_gain = njit(**JIT)(angle_gain)
 _expected_sigma_z_sq = njit(**JIT)(expected_sigma_z_sq)
+#: ... and the disparity family's: sigma_z = z^2 (c + g), g = (s1 / (f B)) theta^2, E[sigma_z^2]
+_disparity_sigma_z = njit(**JIT)(disparity_sigma_z_from_gain)
+_disparity_angle_gain = njit(**JIT)(disparity_angle_gain)
+_disparity_expected_sigma_z_sq = njit(**JIT)(disparity_expected_sigma_z_sq)
+
+
+@njit(**JIT)
+def _sigma_model(z, g, c0, c1, c2, disp):
+    """sigma_z [m] of the model's family at depth z with angle gain g: the disparity family (disp) z^2 (c2 + g)
+    with c2 = s0 / (f B), else the paper's c0 + c1 z + c2 z^2 + g z^(3/2) (SensorModel.params_array)."""
+    sd = _disparity_sigma_z(z, g, c2)
+    sp = _sigma_z(z, g, c0, c1, c2)
+    return sd if disp else sp
+
+
+@njit(**JIT)
+def _gain_model(t, ct, disp):
+    """The angle gain of the model's family at the (capped) angle t [rad]."""
+    gd = _disparity_angle_gain(t, ct)
+    gp = _angle_gain(t, ct)
+    return gd if disp else gp
+
+
+@njit(**JIT)
+def _expected_model(z, eg, eg2, c0, c1, c2, disp):
+    """E[sigma_z^2] [m^2] of the model's family from the gain's moments E[g], E[g^2]."""
+    ed = _disparity_expected_sigma_z_sq(z, eg, eg2, c2)
+    ep = _expected_sigma_z_sq(z, eg, eg2, c0, c1, c2)
+    return ed if disp else ep
 _reduced_chi2_quantile = njit(**JIT)(reduced_chi2_quantile)
 
 
@@ -189,23 +221,24 @@ def _theta_std_from_moments(S, alpha, beta, gamma):
 
 
 @njit(**JIT)
-def _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw):
-    """(E[g], E[g^2]) of the angle gain for theta ~ N(t, ts^2): the Gauss-Hermite nodes hx, weights hw
-    where t +- 4 ts lies inside (0, theta_max), else the grid gx, gw (THETA_QUADRATURE, THETA_GRID)."""
+def _gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw):
+    """(E[g], E[g^2]) of the angle gain of the model's family for theta ~ N(t, ts^2): the Gauss-Hermite nodes
+    hx, weights hw where t +- 4 ts lies inside (0, theta_max), else the grid gx, gw (THETA_QUADRATURE,
+    THETA_GRID)."""
     if not (t - 4.0 * ts > 0.0 and t + 4.0 * ts < theta_max):
         hx = gx
         hw = gw
     eg = 0.0
     eg2 = 0.0
     for k in range(hx.shape[0]):
-        g = _angle_gain(min(abs(t + ts * hx[k]), theta_max), ct)
+        g = _gain_model(min(abs(t + ts * hx[k]), theta_max), ct, disp)
         eg = eg + hw[k] * g
         eg2 = eg2 + hw[k] * (g * g)
     return eg, eg2
 
 
 @njit(**JIT)
-def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2, disp):
     """Whether neighbour depth zn (NaN / -inf: none) agrees with z: |zn - z| within the depth-edge
     threshold at the nearer depth with the pixel's angle gain g (noise_model.despeckle)."""
     if not zn > 0.0:
@@ -214,7 +247,7 @@ def _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
     d = abs(zn - z)
     if d <= jump_rel * zq:                   # the relative part settles most pixels without a sqrt
         return True
-    return d <= thr_sig * _sigma_z(zq, g, c0, c1, c2)
+    return d <= thr_sig * _sigma_model(zq, g, c0, c1, c2, disp)
 
 
 @njit(**JIT)
@@ -236,21 +269,21 @@ def _rank_median(buf, k):
 
 
 @njit(**JIT)
-def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
+def _row_median(zp, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, disp, buf):
     """The median of the depths of row zp (padded: zp[c + 1] is column c) within half columns of u that
     agree with z, z's own included (noise_model.row_medians); buf holds at least 2 half + 1 values."""
     W = zp.shape[0] - 2
     k = 0
     for c in range(max(0, u - half), min(W, u + half + 1)):
         zn = zp[c + 1]
-        if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+        if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2, disp):
             buf[k] = zn
             k += 1
     return _rank_median(buf, k)
 
 
 @njit(**JIT)
-def _column_median(R, mixed_px, b, v, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, buf):
+def _column_median(R, mixed_px, b, v, u, z, g, half, jump_rel, thr_sig, c0, c1, c2, disp, buf):
     """The median of R[v - half .. v + half, u] that agree with z (noise_model.surface_depths), R read only
     where mixed_px (per block row b) marks the pixel's window mixed, NaN there meaning invalid; R[v, u] is
     a median of depths that agree with z, so at least it agrees."""
@@ -258,14 +291,14 @@ def _column_median(R, mixed_px, b, v, u, z, g, half, jump_rel, thr_sig, c0, c1, 
     k = 0
     for r in range(max(0, v - half), min(H, v + half + 1)):
         zn = R[r, u] if mixed_px[r // b, u] > 0.0 else np.nan
-        if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+        if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2, disp):
             buf[k] = zn
             k += 1
     return _rank_median(buf, k) if k > 0 else z
 
 
 @njit(**JIT)
-def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, buf):
+def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, disp, buf):
     """The median depth of the valid 8 neighbours of pixel (v, u) at depth z when none of them agrees with
     it (a speckle), else NaN (noise_model.despeckle)."""
     H, W = depth.shape
@@ -280,7 +313,7 @@ def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0,
                 continue
             zn = depth[r, c] * scale
             if (zn >= zmin) & (zn <= zmax):
-                if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2):
+                if _agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2, disp):
                     return np.nan
                 buf[k] = zn
                 k += 1
@@ -337,6 +370,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     c0, c1, c2, ct, theta_max, s_left, s_right = (
         params[0], params[1], params[2], params[3], params[4], params[5], params[6])
+    disp = params[7] > 0.5                   # the disparity family (SensorModel.params_array)
     jump_rel, jump_sig, noise_sigmas = edge_params[0], edge_params[1], edge_params[2]
     thr_sig = jump_sig * math.sqrt(2.0)      # noise part of the depth-edge threshold, per sigma_z
     zmin, zmax = zrange[0], zrange[1]
@@ -447,8 +481,8 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 mixed = _window_mixed(M, S, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
                 if not ok:
                     pg = np.nan
-                eg, eg2 = _gain_moments(t, ts, ct, theta_max, hx, hw, gx, gw)
-                g = _angle_gain(min(t, theta_max), ct)
+                eg, eg2 = _gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw)
+                g = _gain_model(min(t, theta_max), ct, disp)
             for u in range(bx * b, min(W, bx * b + b)):
                 gain_px[by, u] = g
                 eg_px[by, u] = eg
@@ -481,7 +515,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 z = zr_row[u + 1]
                 rm = np.nan
                 if z > 0.0:
-                    rm = _row_median(zr_row, u, z, gain_px[by, u], row_half, jump_rel, thr_sig, c0, c1, c2, rb)
+                    rm = _row_median(zr_row, u, z, gain_px[by, u], row_half, jump_rel, thr_sig, c0, c1, c2, disp, rb)
                 rowmed[v, u] = rm
 
     # output offsets (exclusive prefix sum of the row counts)
@@ -546,7 +580,7 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
             for u in range(W):
                 z = zp[u + 1]
                 # noise part with this pixel's sigma_z(z, theta), as noise_model.depth_edges(theta=...)
-                thr = max(jump_rel * z, thr_sig * _sigma_z(z, gain_px[by, u], c0, c1, c2))
+                thr = max(jump_rel * z, thr_sig * _sigma_model(z, gain_px[by, u], c0, c1, c2, disp))
                 left = not (zp[u] - z <= thr)
                 right = not (zp[u + 2] - z <= thr)
                 var_x = sR2 if right else -1.0      # -1: interior, the pixel footprint at the point's depth
@@ -559,15 +593,15 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 md = nan
                 if z > 0.0:
                     g = gain_px[by, u]
-                    if not (_agrees(zp[u], z, g, jump_rel, thr_sig, c0, c1, c2)
-                            or _agrees(zp[u + 2], z, g, jump_rel, thr_sig, c0, c1, c2)):
-                        md = _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2,
+                    if not (_agrees(zp[u], z, g, jump_rel, thr_sig, c0, c1, c2, disp)
+                            or _agrees(zp[u + 2], z, g, jump_rel, thr_sig, c0, c1, c2, disp)):
+                        md = _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, disp,
                                              nbuf)
                 medrow[u] = md
                 rm = nan
                 if (z > 0.0) & (mixed_px[by, u] > 0.0):
                     rm = _column_median(rowmed, mixed_px, b, v, u, z, gain_px[by, u], rows_half, jump_rel, thr_sig,
-                                        c0, c1, c2, rbuf)
+                                        c0, c1, c2, disp, rbuf)
                 colmed[u] = rm
             k = 0
             for u in range(W):
@@ -604,10 +638,10 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
                 wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
                 zf = 1.0 / wf if wf > 0.0 else z
                 zf = zf if (zf >= zmin) & (zf <= zmax) else z
-                sf = max(_sigma_z(zf, g, c0, c1, c2), _sigma_z(z, g, c0, c1, c2))
+                sf = max(_sigma_model(zf, g, c0, c1, c2, disp), _sigma_model(z, g, c0, c1, c2, disp))
                 zs = zf if abs(z - zf) <= noise_sigmas * sf else z
                 # E[sigma_z^2] over the uncertainty of theta (noise_model.axial_variance)
-                s2 = max(_expected_sigma_z_sq(zs, eg_px[by, u], eg2_px[by, u], c0, c1, c2), dev2)
+                s2 = max(_expected_model(zs, eg_px[by, u], eg2_px[by, u], c0, c1, c2, disp), dev2)
                 # in a window of two surfaces the model's sigma is the fit's across both (its angle,
                 # its plane): the pixel's distance from its own surface's median is a floor, as a
                 # speckle's from its neighbours (a speckle: its replaced depth, so 0; NaN: not mixed)
@@ -654,6 +688,14 @@ def _depth_to_map_kernel(depth, scale, intr, T, P, use_pose, params, edge_params
 # ---------------------------------------------------------------------------------------------
 # public entries
 # ---------------------------------------------------------------------------------------------
+def _frame_model(model, K) -> SensorModel:
+    """The model as it applies to a frame of intrinsics K: a disparity-family model bound to the frame's
+    focal length fx (its sigma_d is in pixels of this frame), the paper's family as it is."""
+    if not isinstance(model, SensorModel):
+        raise ValueError(f"model must be a noise_model.SensorModel, got {type(model).__name__}")
+    return model.with_focal(K[0, 0]) if model.family == "disparity" else model
+
+
 def _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m, max_depth_m, block_px):
     d, scale = check_depth(depth, depth_scale)
     K = check_intrinsics(K)
@@ -691,7 +733,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     depth_scale : float, optional
         Metres per unit for uint16 depth.
     model : SensorModel
-        Noise model (the paper's D435 by default).
+        Noise model (the paper's D435 by default); a disparity-family model's sigma_d is converted to depth
+        with this frame's focal length K[0, 0] and the model's baseline.
     min_depth_m, max_depth_m : float
         Valid depth range [m].
     block_px : int, optional
@@ -712,6 +755,7 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     """
     d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
                                                 max_depth_m, block_px)
+    model = _frame_model(model, K)
     n = resolve_threads(nthreads)
     ws = Workspace(*d.shape) if workspace is None else workspace
     if not isinstance(ws, Workspace) or ws.shape != d.shape:
@@ -744,6 +788,7 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
     """
     d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
                                                 max_depth_m, block_px)
+    model = _frame_model(model, K)
     z = depth_to_metres(d, None if d.dtype != np.uint16 else scale, zmin, zmax)
     pts = deproject(z, K)
     theta, theta_std = incidence_angle_stats(pts, block_px=b)
