@@ -150,6 +150,8 @@ def check_intrinsics(K, name: str = "K") -> np.ndarray:
         raise ValueError(f"{name} has non-finite entries")
     if a[0, 0] <= 0 or a[1, 1] <= 0:
         raise ValueError(f"{name} focal lengths must be > 0 px, got fx={a[0, 0]}, fy={a[1, 1]}")
+    if a[0, 0] < 1.0 or a[1, 1] < 1.0:       # a field of view near 180 deg; the noise model's 1/f^2 overflows
+        raise ValueError(f"{name} focal lengths must be >= 1 px, got fx={a[0, 0]:g}, fy={a[1, 1]:g}")
     if a[0, 1] != 0 or a[1, 0] != 0:
         raise ValueError(f"{name} has skew/shear terms ({a[0, 1]}, {a[1, 0]}); only zero skew is supported")
     if not np.allclose(a[2], [0.0, 0.0, 1.0]):

@@ -17,10 +17,11 @@ whatever the thread count.
 from __future__ import annotations
 
 import contextlib
+import threading
 
 import numba
 
-__all__ = ["FASTMATH", "JIT", "resolve_threads", "threads"]
+__all__ = ["FASTMATH", "JIT", "THREADSAFE_LAYERS", "layer_is_threadsafe", "resolve_threads", "threads"]
 
 #: numba fastmath flags: no nnan/ninf (isnan must work), no arcp (exact division for binning).
 FASTMATH = {"nsz", "contract", "afn", "reassoc"}
@@ -41,16 +42,38 @@ def resolve_threads(nthreads) -> int:
     return n
 
 
+#: numba threading layers that accept parallel kernels launched from several Python threads at once.
+THREADSAFE_LAYERS = ("omp", "tbb")
+
+#: Held around every parallel region while the layer is not known to be thread-safe (see :func:`threads`).
+_LAYER_LOCK = threading.RLock()
+
+
+def layer_is_threadsafe() -> bool | None:
+    """True for the OpenMP and TBB layers, False for numba's own ``workqueue`` (which aborts the process
+    when two Python threads launch parallel kernels at once), None before the first parallel launch (numba
+    picks its layer then: ``workqueue`` where neither TBB nor an OpenMP runtime such as libgomp1 is found)."""
+    try:
+        return numba.threading_layer() in THREADSAFE_LAYERS
+    except ValueError:
+        return None
+
+
 @contextlib.contextmanager
 def threads(nthreads):
     """Run the body with numba's thread count set to ``nthreads`` (validated), then restore it.
 
+    Unless numba's threading layer is known to be thread-safe (:func:`layer_is_threadsafe`), the body runs
+    under one process-wide lock: mapping from several Python threads is then serialised instead of
+    aborting the process. Results do not depend on it (kernels are deterministic per call).
+
     Yields the resolved count.
     """
     n = resolve_threads(nthreads)
-    previous = numba.get_num_threads()
-    numba.set_num_threads(n)
-    try:
-        yield n
-    finally:
-        numba.set_num_threads(previous)
+    with contextlib.nullcontext() if layer_is_threadsafe() else _LAYER_LOCK:
+        previous = numba.get_num_threads()
+        numba.set_num_threads(n)
+        try:
+            yield n
+        finally:
+            numba.set_num_threads(previous)

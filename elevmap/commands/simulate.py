@@ -14,7 +14,6 @@ a reality nobody wrote as a formula, for the characterisation and the gap tool t
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -85,7 +84,7 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
     """
     from tqdm import tqdm
 
-    from ..sources.captures import read_capture_set, write_capture_set
+    from ..sources.captures import capture_set_files, read_capture_set, write_capture_set
 
     settings = paper_grid() if isinstance(grid, str) and grid == "paper" else [(float(d), float(y)) for d, y in grid]
     if isinstance(grid, str) and grid != "paper":
@@ -104,7 +103,7 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
         matcher_preset(preset).check_size(width, height)        # the preset and the size, before anything else
         stereo = StereoD435(int(width), int(height), K=model.intrinsics(width, height), baseline_m=model.baseline_m,
                             matcher=preset)
-    out = check_folder_output("--out", out, overwrite, _capture_set_files, kind="a capture set")
+    out = check_folder_output("--out", out, overwrite, capture_set_files, kind="a capture set")
     K = model.intrinsics(width, height)
     what = ("reference simulation of Ahn et al. 2019" if stereo is None
             else f"physical active-stereo model, matcher preset {preset}")
@@ -133,21 +132,6 @@ def simulate_capture_set(out, grid="paper", n_frames: int = 100, width: int = 42
                       {"sensor": "stereo", "preset": preset, "seed": seed, "frames": int(n_frames)})
         write_capture_set(tmp, camera, entries, overwrite=True, extra={"simulation": simulation})
     return read_capture_set(out)
-
-
-def _capture_set_files(folder: Path):
-    """The files of the capture set in ``folder`` (captures.json and its depth files), None if it holds none."""
-    from ..sources.captures import CAPTURES_JSON
-
-    index = folder / CAPTURES_JSON
-    if not index.is_file():
-        return None
-    try:
-        doc = json.loads(index.read_text())
-        depth = [c["depth"] for c in doc["captures"]]
-    except (OSError, ValueError, RecursionError, TypeError, KeyError):
-        return None
-    return [CAPTURES_JSON, *(d for d in depth if isinstance(d, str))]
 
 
 def validate_stereo(realdata=None, json_path=None, n_frames: int | None = None) -> int:

@@ -47,7 +47,7 @@ from ..fileio import atomic_output, json_ready, write_json_atomic
 from ..frame import Frame
 
 __all__ = ["FORMAT", "Capture", "CaptureSet", "read_capture_set", "write_capture_set", "CAPTURES_JSON",
-           "GEOMETRIES"]
+           "GEOMETRIES", "capture_set_files"]
 
 FORMAT = "d435-captures/1"
 CAPTURES_JSON = "captures.json"
@@ -71,13 +71,21 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
+def _finite(v) -> bool:
+    """A finite number (an integer too large for a float is not)."""
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
+
+
 def _number(d: dict, key: str, where: str, *, positive: bool = False, default=None, required: bool = True):
     if key not in d or d[key] is None:
         if required:
             raise ValueError(f"{where}: missing required key '{key}'")
         return default
     v = d[key]
-    if not _is_number(v) or not math.isfinite(float(v)):
+    if not _is_number(v) or not _finite(v):
         raise ValueError(f"{where}: '{key}' must be a finite number, got {v!r}")
     if positive and float(v) <= 0:
         raise ValueError(f"{where}: '{key}' must be > 0, got {v!r}")
@@ -92,10 +100,11 @@ def _check_camera(camera, where: str) -> dict:
         v = camera.get(key)
         if key not in camera:
             raise ValueError(f"{w}: missing required key '{key}'")
-        if not _is_number(v) or float(v) != int(v) or int(v) < 1:
+        if not _is_number(v) or not _finite(v) or float(v) != int(v) or int(v) < 1:
             raise ValueError(f"{w}: '{key}' must be a positive integer [px], got {v!r}")
     for key in ("fx", "fy"):
-        _number(camera, key, w, positive=True)
+        if _number(camera, key, w, positive=True) < 1.0:
+            raise ValueError(f"{w}: '{key}' = {camera[key]!r} px is below 1 px: not a camera's focal length")
     for key in ("ppx", "ppy"):
         _number(camera, key, w)
     scale = _number(camera, "depth_scale", w, positive=True)
@@ -133,7 +142,7 @@ def _check_target(target, where: str, background_m) -> None:
                 raise ValueError(f"{w}: a board needs '{key}' (missing required key)")
             _number(target, key, w, positive=True)
     if background_m is not None:
-        if not _is_number(background_m) or not math.isfinite(float(background_m)) or background_m <= 0:
+        if not _is_number(background_m) or not _finite(background_m) or background_m <= 0:
             raise ValueError(f"{where}: 'background_m' must be null or a number > 0 [m], got {background_m!r}")
         if float(background_m) <= d:
             raise ValueError(f"{where}: 'background_m' = {background_m} m is not behind the target at "
@@ -145,7 +154,7 @@ def _check_plane_target(target: dict, w: str, where: str, background_m) -> None:
     if "normal" not in target:
         raise ValueError(f"{w}: missing required key 'normal'")
     m = target["normal"]
-    if not isinstance(m, (list, tuple)) or len(m) != 3 or not all(_is_number(x) and math.isfinite(float(x))
+    if not isinstance(m, (list, tuple)) or len(m) != 3 or not all(_is_number(x) and _finite(x)
                                                                    for x in m):
         raise ValueError(f"{w}: 'normal' must be 3 finite numbers, got {m!r}")
     norm = math.sqrt(sum(float(x) ** 2 for x in m))
@@ -364,6 +373,10 @@ def _parse_capture(d, k: int, camera: dict, folder: Path, where: str, *, check_f
     geometry = "measured" if geometry is None else geometry
     if geometry not in GEOMETRIES:
         raise ValueError(f"{w}: 'geometry' must be 'measured' or 'fitted', got {geometry!r}")
+    for key, name in (("depth", depth), ("mask", mask)):       # (the writer asks for a plain name instead)
+        if check_file and name is not None and not _inside_folder(name):
+            raise ValueError(f"{w}: '{key}' file {name!r} is not inside the capture set's folder (an absolute path "
+                             "or one through '..'); name a file in the folder")
     path = folder / depth
     mask_path = None if mask is None else folder / mask
     if check_file:
@@ -380,6 +393,13 @@ def _parse_capture(d, k: int, camera: dict, folder: Path, where: str, *, check_f
     extra = {key: v for key, v in d.items() if key not in _CAPTURE_KEYS}
     return Capture(cid, depth, path, d["target"], None if background is None else float(background), extra,
                    mask, mask_path, geometry)
+
+
+def _inside_folder(name: str) -> bool:
+    """A file name relative to the capture set's folder that stays inside it: not absolute, no '..' part
+    (a set must not read, and a user must not be led to share, files from elsewhere)."""
+    p = Path(name)
+    return not (p.is_absolute() or p.drive or ".." in p.parts or "\\" in name)
 
 
 def _check_unique(captures: list[Capture], where: str) -> None:
@@ -566,6 +586,23 @@ def _write_mask_png(path: Path, mask: np.ndarray) -> None:
         tmp.write_bytes(buf.tobytes())
 
 
+def capture_set_files(folder) -> list[str] | None:
+    """The names of the files of the capture set in ``folder``: captures.json, its depth files and masks.
+
+    None when the folder holds no readable captures.json (it is not a capture set). Used to tell a capture
+    set, which a command may replace whole, from a folder that also holds other files.
+    """
+    index = Path(folder) / CAPTURES_JSON
+    if not index.is_file():
+        return None
+    try:
+        doc = json.loads(index.read_text())
+        names = [c[key] for c in doc["captures"] for key in ("depth", "mask") if key in c]
+    except (OSError, ValueError, RecursionError, TypeError, KeyError):
+        return None
+    return [CAPTURES_JSON, *(n for n in names if isinstance(n, str))]
+
+
 def read_capture_set(folder) -> CaptureSet:
     """Read a capture set (format ``d435-captures/1``) from a folder holding ``captures.json``.
 
@@ -596,6 +633,8 @@ def read_capture_set(folder) -> CaptureSet:
         raise ValueError(f"{path}: no such file ({folder} is not a capture set)") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: JSON nested too deeply to be a capture set") from None
     return _from_dict(doc, folder, str(path), check_files=True)
 
 

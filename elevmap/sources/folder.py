@@ -123,9 +123,18 @@ def _pngs(folder: Path) -> list[Path]:
 def _looks_like_intrinsics(path: Path) -> bool:
     try:
         d = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError):
         return False
     return isinstance(d, dict) and ("intrinsic_matrix" in d or all(k in d for k in ("fx", "fy", "ppx", "ppy")))
+
+
+def _json_problem(path: Path) -> str | None:
+    """Why a .json file does not parse (empty, truncated, not text), or None when it does."""
+    try:
+        json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        return str(exc) or type(exc).__name__
+    return None
 
 
 def find_intrinsics(folder) -> Path:
@@ -141,8 +150,13 @@ def find_intrinsics(folder) -> Path:
     """
     folder = Path(folder)
     places = [folder] + ([folder.parent] if folder.name.lower() == "depth" else [])
-    found = [p for place in places for p in sorted(place.glob("*.json")) if _looks_like_intrinsics(p)]
+    candidates = [p for place in places for p in sorted(place.glob("*.json"))]
+    found = [p for p in candidates if _looks_like_intrinsics(p)]
     if not found:
+        unreadable = [f"{p} ({problem})" for p in candidates if (problem := _json_problem(p))]
+        if unreadable:
+            raise ValueError(f"{folder}: no readable intrinsics JSON file; " + "; ".join(unreadable)
+                             + " is not valid JSON (truncated?)")
         raise ValueError(f"{folder}: no intrinsics JSON file found (Open3D PinholeCameraIntrinsic format); "
                          "pass intrinsics=FILE.json or a 3x3 K")
     if len(found) > 1:

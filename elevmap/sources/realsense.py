@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import gc
 import os
+import re
+import sqlite3
 import tempfile
 import warnings
 from collections.abc import Iterable, Iterator
@@ -138,6 +140,34 @@ def _depth_image(frame) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------
+
+
+_DEPTH_TOPIC = re.compile(r"/Depth_\d+/image/data(/compressedDepth)?$")
+
+
+def db3_depth_messages(path) -> int | None:
+    """Depth images a RealSense ``.db3`` lists in its SQLite ``messages`` table (None: not a .db3, not
+    readable as one, or several depth streams).
+
+    A corrupted message makes the SDK's player stop early without an error; comparing the frames played
+    with this count turns that into one. The file is opened read-only and immutable (no journal is written).
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".db3":
+        return None
+    try:
+        con = sqlite3.connect(f"file:{path.resolve().as_posix()}?mode=ro&immutable=1", uri=True)
+        try:
+            topics = [(i, name) for i, name in con.execute("SELECT id, name FROM topics")
+                      if _DEPTH_TOPIC.search(name)]
+            if len(topics) != 1:
+                return None
+            (count,), = con.execute("SELECT COUNT(*) FROM messages WHERE topic_id = ?", (topics[0][0],))
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return None
+    return int(count)
 
 
 class RealSenseFileSource(FrameSource):
@@ -265,6 +295,10 @@ class RealSenseFileSource(FrameSource):
                     if player.current_status() == rs.playback_status.stopped:
                         ok, frames = pipe.try_wait_for_frames(_POLL_MS)  # one still in flight?
                         if not ok:
+                            expected = db3_depth_messages(self.path)
+                            if expected is not None and n < expected:
+                                raise ValueError(f"{self.path}: played back {n} of the {expected} depth frames "
+                                                 "its messages table lists: the recording is corrupt")
                             return
                     else:
                         waited += _POLL_MS / 1000.0

@@ -240,10 +240,16 @@ class RrdSource:
 
     def _finish(self, k, t, e, pin, depth, meter) -> Frame:
         s = self._store
+        if not (np.isfinite(meter) and meter > 0):
+            raise ValueError(f"{self.path}: depth image at {e} has meter = {meter}; it must be finite and > 0 "
+                             "(depth units per metre)")
         camera = e.strip("/").split("/")[-2] if e.strip("/").count("/") >= 1 else e.strip("/")
         meta = s.get(f"/meta/{camera}", {})
         exact = {name: meta[name].latest_at(t) for name in _META if name in meta}
         exact = {k2: _to_numpy(v) for k2, v in exact.items() if v is not None}
+        for name, size in (("K", 9), ("T_map_cam", 16), ("pose_cov", 36)):
+            if name in exact and exact[name].size != size:
+                raise ValueError(f"{self.path}: meta/{camera} {name} holds {exact[name].size} numbers, not {size}")
         if "K" in exact:
             K = exact["K"].reshape(3, 3)
         else:
@@ -256,6 +262,8 @@ class RrdSource:
             for a in _parent_chain(e):
                 if a in s:
                     T = T @ _transform(s[a], t)
+            if not np.all(np.isfinite(T)):
+                raise ValueError(f"{self.path}: the transform of {e} at frame {k} is not finite")
             T[:3, :3] = Rotation.from_matrix(T[:3, :3]).as_matrix()     # re-orthonormalise float32 rotations
         pose_cov = exact["pose_cov"].reshape(6, 6) if "pose_cov" in exact else None
         stamp = float(exact["stamp"][0]) if "stamp" in exact else float(t)
