@@ -76,6 +76,25 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--json", metavar="PATH", help="write the run's summary as JSON")
         p.add_argument("--overwrite", action="store_true", help="replace an existing --rrd/--json file")
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
+        if name == "run":
+            _ros_options(p)
+            p.add_argument("--bag-out", metavar="PATH",
+                           help="write the map as grid_map_msgs/GridMap + foxglove_msgs/Grid + /tf: PATH.bag (ROS 1), "
+                                "PATH.mcap or a folder name (ROS 2 .db3)")
+            p.add_argument("--map-rate", type=float, default=None, metavar="HZ",
+                           help="maps per second of the source's time in --bag-out and --foxglove (default: 2)")
+            p.add_argument("--foxglove", nargs="?", type=int, const=8765, default=None, metavar="PORT",
+                           help="serve the map, depth and transforms live to Foxglove on 127.0.0.1:PORT "
+                                "(default 8765; needs foxglove-sdk)")
+
+    p = sub.add_parser("bag-info", help="what a ROS bag holds for mapping: depth topics, camera info, transforms",
+                       description="List the depth topics of a ROS bag (ROS 1 .bag, ROS 2 folder, .mcap, .db3) as "
+                                   "`elevmap run` reads them: encoding, size, frames, the matching camera info, the "
+                                   "chain of transforms to the map frame, and in plain words what is missing.")
+    p.add_argument("bag", metavar="BAG")
+    _ros_options(p)
+    p.add_argument("--json", metavar="PATH", help="also write the inspection as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
 
     p = sub.add_parser("simulate", help="simulate a D435: capture sets on the paper's grid, or a walk",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -201,6 +220,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
+    p = sub.add_parser("captures", help="a capture set from static stretches of a recording: one capture per plane",
+                       description=textwrap.fill(
+                           "Make a capture set (d435-captures/1) from static stretches of any recording (no "
+                           "measured target needed): for each stretch, the dominant planes of the per-pixel mean "
+                           "(RANSAC, refitted along the rays), each written as a capture with a fitted plane "
+                           "target, the stretch's frames and a pixel mask (the mean within 4 temporal sigmas of "
+                           "the plane), geometry 'fitted'. Frames are numbered from 0 in the order the source "
+                           "yields them.", 100) + "\n\n"
+                                   "  elevmap captures RECORDING --frames 141-156[,1-8] --out DIR "
+                                   "[--intrinsics FILE.json|fx,fy,ppx,ppy]",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("recording", metavar="RECORDING", help="a PNG folder, .bag/.db3, .rrd, capture set or sim:SCENE")
+    p.add_argument("--frames", required=True, metavar="A-B[,C-D]",
+                   help="static stretches, inclusive frame ranges (at least 2 frames each)")
+    p.add_argument("--out", required=True, metavar="DIR", help="the capture set's folder (new or empty)")
+    p.add_argument("--intrinsics", metavar="FILE.json|fx,fy,ppx,ppy", help="intrinsics of a PNG folder [px]")
+    p.add_argument("--baseline-m", type=float, default=0.050, help="stereo baseline written to the set (default: "
+                                                                    "the D435's 0.050 m)")
+    p.add_argument("--max-planes", type=int, default=4, help="planes per stretch at most (default: 4)")
+    p.add_argument("--min-plane-fraction", type=float, default=0.05,
+                   help="smallest plane kept, as a fraction of the image (default: 0.05)")
+    p.add_argument("--seed", type=int, default=0, help="seed of RANSAC (default: 0)")
+    p.add_argument("--json", metavar="PATH", help="also write what was found as JSON")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier capture set in --out and --json")
+
     p = sub.add_parser("bench", help="time the numba kernels against their NumPy references",
                        description="Median per-frame time of each compiled kernel after warm-up, next to its "
                                    "NumPy reference measured in the same run; the physical D435 (stereo) next "
@@ -215,6 +259,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return parser
+
+
+def _ros_options(p) -> None:
+    """The options of a ROS bag source."""
+    p.add_argument("--depth-topic", action="append", default=None, metavar="TOPIC",
+                   help="a ROS bag's depth topic to map (repeat for several cameras; default: every depth topic)")
+    p.add_argument("--map-frame", metavar="FRAME",
+                   help="a ROS bag's map frame (default: the odometry's frame, else the root of /tf)")
+    p.add_argument("--base-frame", metavar="FRAME",
+                   help="the robot frame a ROS bag's odometry poses (default: its child_frame_id)")
 
 
 def _source_help() -> str:
@@ -309,18 +363,80 @@ def _cmd_run(args) -> int:
                    inputs=[args.source, args.poses, args.config, args.intrinsics])
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
+    ros = {k: getattr(args, k, None) for k in ("depth_topic", "map_frame", "base_frame", "bag_out", "map_rate",
+                                               "foxglove")}
+    if ros["bag_out"]:
+        from .ros.bagout import bag_layout
+
+        bag_layout(ros["bag_out"])
+        _check_outputs({"--bag-out": ros["bag_out"], "--rrd": args.rrd, "--json": args.json}, args.overwrite,
+                       inputs=[args.source])
+    if ros["map_rate"] is not None and not (ros["bag_out"] or ros["foxglove"] is not None):
+        raise ValueError("--map-rate goes with --bag-out or --foxglove")
     src = open_source(args.source, poses=args.poses, intrinsics=args.intrinsics, frames=args.frames,
-                      seed=args.seed)
+                      seed=args.seed, depth_topics=ros["depth_topic"], map_frame=ros["map_frame"],
+                      base_frame=ros["base_frame"])
     total = len(src) if hasattr(src, "__len__") else None
-    with src if hasattr(src, "__enter__") else contextlib.nullcontext(src) as frames:
-        summary = run_mapping(frames, config, rrd_path=args.rrd, spawn=args.spawn, total=total,
-                              show_progress=not args.no_progress, notes=f"elevmap {args.command} {args.source}")
+    outputs = _ros_outputs(ros, getattr(src, "map_frame", None) or "map")
+    try:
+        with src if hasattr(src, "__enter__") else contextlib.nullcontext(src) as frames:
+            summary = run_mapping(frames, config, rrd_path=args.rrd, spawn=args.spawn, total=total,
+                                  show_progress=not args.no_progress, notes=f"elevmap {args.command} {args.source}",
+                                  callbacks=list(outputs.values()))
+        for name, out in outputs.items():
+            summary[name] = out.finish(summary["map"])
+    except BaseException:
+        for out in outputs.values():
+            out.abort()
+        raise
+    if hasattr(src, "summary"):
+        summary["source"] = src.summary()
     _print_summary(summary)
+    if "source" in summary:
+        s = summary["source"]
+        print(f"{s['frames_mapped']} frames mapped, {s['frames_skipped']} skipped" + "".join(
+            f"; {topic}: " + ", ".join(f"{n} {why}" for why, n in reasons.items())
+            for topic, reasons in s["skipped"].items()))
+    if "bag_out" in summary:
+        print(f"wrote {summary['bag_out']['path']} ({summary['bag_out']['maps']} maps)")
     if args.json:
         write_json_atomic(args.json, {k: v for k, v in summary.items() if k != "map"})
     if args.rrd:
         print(f"wrote {args.rrd}; {_open_hint(args.rrd)}")
     return 0
+
+
+def _ros_outputs(ros: dict, map_frame: str) -> dict:
+    """The ``--bag-out`` and ``--foxglove`` consumers of a run (none asked: an empty dict)."""
+    from .commands.bag import DEFAULT_MAP_RATE_HZ, BagOutput, LiveOutput
+
+    rate = DEFAULT_MAP_RATE_HZ if ros["map_rate"] is None else ros["map_rate"]
+    outputs = {}
+    try:
+        if ros["bag_out"]:
+            outputs["bag_out"] = BagOutput(ros["bag_out"], map_frame=map_frame, rate_hz=rate)
+        if ros["foxglove"] is not None:
+            outputs["foxglove"] = LiveOutput(ros["foxglove"], map_frame=map_frame, rate_hz=rate)
+            print(f"Foxglove: open a connection to {outputs['foxglove'].server.url}", file=sys.stderr)
+    except BaseException:
+        for out in outputs.values():
+            out.abort()
+        raise
+    return outputs
+
+
+def _cmd_bag_info(args) -> int:
+    from .commands.bag import format_bag_info, run_bag_info
+    from .fileio import write_json_atomic
+
+    _check_outputs({"--json": args.json}, args.overwrite, inputs=[args.bag])
+    info = run_bag_info(args.bag, depth_topics=args.depth_topic, map_frame=args.map_frame,
+                        base_frame=args.base_frame)
+    print(format_bag_info(info))
+    if args.json:
+        write_json_atomic(args.json, info)
+        print(f"wrote {args.json}")
+    return 0 if all(d["problem"] is None for d in info["depth"].values()) else 1
 
 
 def _cmd_bench(args) -> int:
@@ -456,6 +572,22 @@ def _cmd_gap(args) -> int:
     return 0
 
 
+def _cmd_captures(args) -> int:
+    from .commands.captures import format_summary, run_captures
+
+    _check_outputs({"--json": args.json}, args.overwrite, inputs=[args.recording])
+    report = run_captures(args.recording, args.frames, args.out, intrinsics=args.intrinsics,
+                          baseline_m=args.baseline_m, max_planes=args.max_planes,
+                          min_plane_fraction=args.min_plane_fraction, seed=args.seed, overwrite=args.overwrite)
+    if args.json:
+        from .fileio import write_json_atomic
+
+        write_json_atomic(args.json, report)
+    print(format_summary(report))
+    print(f"wrote {report['out']}" + (f" and {args.json}" if args.json else ""))
+    return 0
+
+
 def _cmd_characterize(args) -> int:
     from .commands.characterize import format_summary, run_characterize
 
@@ -466,8 +598,8 @@ def _cmd_characterize(args) -> int:
     return 0 if report["fit"] is not None else 1
 
 
-COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "compare": _cmd_compare, "simulate": _cmd_simulate,
-            "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run}
+COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "captures": _cmd_captures, "compare": _cmd_compare, "simulate": _cmd_simulate,
+            "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run, "bag-info": _cmd_bag_info}
 
 
 def main(argv=None) -> int:

@@ -82,6 +82,8 @@ def _offenders(top: str, allowed) -> list[str]:
     ("pyrealsense2", ("elevmap/sources/",)),
     ("cv2", ("elevmap/sources/", "noise_model/analysis/detection.py")),
     ("tqdm", ("elevmap/",)),                                       # progress bars belong to the commands
+    ("rosbags", ("elevmap/ros/", "elevmap/sources/rosbag.py")),   # ROS messages and bags
+    ("foxglove", ("elevmap/ros/",)),                               # the live Foxglove view
 ])
 def test_each_library_is_imported_only_where_its_layer_allows(top, allowed):
     assert _offenders(top, allowed) == []
@@ -109,7 +111,8 @@ def _fresh_import(code: str) -> subprocess.CompletedProcess:
 
 def test_importing_the_map_loads_neither_simulator_nor_viewer():
     code = ("import sys, elevmap; bad = [m for m in sys.modules if m.startswith(('noise_model.sim', "
-            "'noise_model.analysis', 'rerun', 'cv2', 'pyrealsense2', 'matplotlib', 'elevmap.commands', "
+            "'noise_model.analysis', 'rerun', 'cv2', 'pyrealsense2', 'matplotlib', 'rosbags', 'foxglove', "
+            "'elevmap.commands', "
             "'elevmap.viz'))]; print(bad); sys.exit(1 if bad else 0)")
     res = _fresh_import(code)
     assert res.returncode == 0, res.stdout + res.stderr

@@ -4,7 +4,11 @@
 SOURCE                        what it opens
 ============================  ====================================================================
 ``live`` / ``live:SERIAL``    a connected RealSense camera (848x480 at 30 fps by default)
-``FILE.bag``, ``.db3``        a RealSense SDK recording, played back without dropping frames
+``FILE.bag``, ``.db3``        a RealSense SDK recording, played back without dropping frames (by the
+                              ROS bag source when pyrealsense2 is missing or a ROS option is given)
+``FILE.bag``, ``.mcap``,      a ROS bag (ROS 1 .bag, ROS 2 folder with metadata.yaml, bare .mcap/.db3):
+``FOLDER`` (metadata.yaml)    depth images with their camera info, poses from /tf or odometry
+                              (--depth-topic, --map-frame, --base-frame)
 ``FILE.rrd``                  a rerun recording with a DepthImage under a Pinhole
 ``FOLDER`` (captures.json)    a capture set (``d435-captures/1``): every capture's frames in turn
 ``FOLDER`` (PNG files)        16-bit depth PNGs + intrinsics JSON (+ a pose file)
@@ -29,7 +33,7 @@ SOURCE_HELP = __doc__
 
 
 def open_source(spec: str, *, poses=None, intrinsics=None, frames: int | None = None, seed: int = 0,
-                T_pose_cam=None):
+                T_pose_cam=None, depth_topics=None, map_frame: str | None = None, base_frame: str | None = None):
     """Open the source ``spec`` (see the module docstring); returns an iterable of Frame records.
 
     Parameters
@@ -46,8 +50,12 @@ def open_source(spec: str, *, poses=None, intrinsics=None, frames: int | None = 
         Seed of a simulated walk.
     T_pose_cam : (4, 4), optional
         Pose of the camera in the pose file's frame (identity by default).
+    depth_topics, map_frame, base_frame : optional
+        Options of a ROS bag (:class:`elevmap.sources.rosbag.RosbagSource`); an error for other sources.
     """
-    src = _open(spec, intrinsics=intrinsics, frames=frames, seed=seed)
+    ros = {k: v for k, v in (("depth_topics", depth_topics), ("map_frame", map_frame), ("base_frame", base_frame))
+           if v is not None}
+    src = _open(spec, intrinsics=intrinsics, frames=frames, seed=seed, ros=ros)
     if poses is not None:
         from .poses import read_pose_file, with_poses
 
@@ -55,7 +63,7 @@ def open_source(spec: str, *, poses=None, intrinsics=None, frames: int | None = 
     return src
 
 
-def _open(spec: str, *, intrinsics, frames, seed):
+def _open(spec: str, *, intrinsics, frames, seed, ros):
     if spec == "live" or spec.startswith("live:"):
         from .realsense import LiveRealSenseSource
 
@@ -70,11 +78,17 @@ def _open(spec: str, *, intrinsics, frames, seed):
     if not path.exists():
         raise ValueError(f"{spec}: no such file or folder (nor 'live', 'live:SERIAL' or 'sim:SCENE')")
     suffix = path.suffix.lower()
-    if path.is_file():
-        if suffix in (".bag", ".db3"):
+    from .rosbag import RosbagSource, is_realsense_recording, is_ros_bag
+
+    if is_ros_bag(path):
+        if not ros and suffix in (".bag", ".db3") and is_realsense_recording(path) and _has_pyrealsense2():
             from .realsense import RealSenseFileSource
 
             return RealSenseFileSource(path)
+        return RosbagSource(path, **ros)
+    if ros:
+        raise ValueError(f"{spec}: {', '.join(ros)} are options of ROS bag sources (.bag, .mcap, .db3, a bag folder)")
+    if path.is_file():
         if suffix == ".rrd":
             from .rrd import RrdSource
 
@@ -90,6 +104,17 @@ def _open(spec: str, *, intrinsics, frames, seed):
 
         return DepthFolderSource(path, intrinsics)
     raise ValueError(f"{spec}: a folder with neither captures.json nor depth PNGs")
+
+
+def _has_pyrealsense2() -> bool:
+    """Whether pyrealsense2 imports (RealSense recordings are then played by the SDK itself)."""
+    from .realsense import RealSenseUnavailable, import_pyrealsense2
+
+    try:
+        import_pyrealsense2()
+    except RealSenseUnavailable:
+        return False
+    return True
 
 
 #: Options of a ``sim:SCENE?KEY=VALUE&...`` source and the SimulatedWalk argument each sets.

@@ -426,6 +426,10 @@ class RosbagSource(FrameSource):
                 self.frames_read += 1
         finally:
             reader.close()
+        if self.frames_read == 0 and self.skipped:
+            why = "; ".join(f"{topic}: {n} with {reason}" for (topic, reason), n in sorted(self.skipped.items()))
+            raise ValueError(f"{self.path}: every depth frame was skipped ({why}); `elevmap bag-info` says what "
+                             "is missing")
 
     def summary(self) -> dict:
         """What the last iteration read: frames mapped, frames skipped per topic and reason, the pose source."""
@@ -446,7 +450,7 @@ class RosbagSource(FrameSource):
                          "size": None if e["width"] is None else [e["width"], e["height"]],
                          "frame_id": e["frame_id"], "camera_info": e["camera_info"],
                          "K": None if e["K"] is None else np.asarray(e["K"]).tolist(),
-                         "depth_scale": e["depth_scale"] if e["type"] == IMAGE and e["encoding"] != "32FC1" else None,
+                         "depth_scale": None if "32FC1" in e["encoding"] else e["depth_scale"],
                          "chain": chain, "problem": e["problem"]}
         return {"bag": str(self.path), "topics": dict(sorted(self.all_topics.items())), "depth": topics,
                 "pose_source": self.pose_source, "map_frame": self.map_frame,
