@@ -178,11 +178,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "the real-vs-real noise floor), WHICH effect explains it (forward selection on fit\n"
                                    "captures, validated on held-out captures, ablation), HOW FAR the held-out gap\n"
                                    "shrinks.\n\n"
-                                   "  elevmap gap REAL_CAPTURES --json gap.json [--rrd gap.rrd]\n"
+                                   "  elevmap gap REAL_CAPTURES [REAL_CAPTURES ...] --json gap.json [--rrd gap.rrd]\n"
                                    "              [--heldout IDS|auto|none]\n"
                                    "  elevmap gap --selftest [--jobs 2]\n"
                                    "  elevmap gap --realdata DIR --json real.json")
-    p.add_argument("real", metavar="REAL_CAPTURES", nargs="?", help="capture-set folder (captures.json)")
+    p.add_argument("real", metavar="REAL_CAPTURES", nargs="*",
+                   help="capture-set folder (captures.json); several are diagnosed together as one set")
     p.add_argument("--json", metavar="PATH", help="write the report (d435-gap/1); with --selftest, the table")
     p.add_argument("--rrd", metavar="PATH", help="write a rerun recording (bar charts, residual images)")
     p.add_argument("--heldout", metavar="IDS|auto|none", default=None,
@@ -215,6 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="PATH", required=True, help="the report")
     p.add_argument("--model", metavar="PATH",
                    help="the fitted model (default: <json stem>.model.json beside the report)")
+    p.add_argument("--predict", metavar="CAPTURES",
+                   help="another capture set whose axial noise the fitted models predict (per depth bin)")
     p.add_argument("--rrd", metavar="PATH", help="rerun recording of the figures")
     p.add_argument("--figures", metavar="DIR", help="folder for the PNG figures (Fig. 2, 3, 4, lateral noise)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
@@ -327,7 +330,7 @@ def _load_config(path):
             doc = tomllib.load(fh)
     except FileNotFoundError:
         raise ValueError(f"{path}: no such config file") from None
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not valid TOML ({exc})") from None
     bad = set(doc) - {"map"}
     if bad:
@@ -546,6 +549,8 @@ def _cmd_compare(args) -> int:
 def _cmd_gap(args) -> int:
     from .commands.gap import format_selftest, format_summary, run_gap, run_realdata, run_selftest
 
+    if args.jobs < 1:
+        raise ValueError(f"--jobs must be >= 1, got {args.jobs}")
     if args.selftest:
         if args.real or args.realdata or args.rrd:
             raise ValueError("--selftest takes no REAL_CAPTURES, --realdata or --rrd")
@@ -562,7 +567,7 @@ def _cmd_gap(args) -> int:
     else:
         if not args.real:
             raise ValueError("give REAL_CAPTURES (a capture-set folder), --realdata DIR or --selftest")
-        report = run_gap(args.real, json_path=args.json, rrd_path=args.rrd, heldout=args.heldout or "auto",
+        report = run_gap(args.real if len(args.real) > 1 else args.real[0], json_path=args.json, rrd_path=args.rrd, heldout=args.heldout or "auto",
                          effects=args.effects, seed=args.seed, show_progress=not args.no_progress,
                          overwrite=args.overwrite)
     print(format_summary(report))
@@ -592,10 +597,11 @@ def _cmd_characterize(args) -> int:
     from .commands.characterize import format_summary, run_characterize
 
     report = run_characterize(args.captures, json_path=args.json, rrd_path=args.rrd, figures_dir=args.figures,
-                              model_path=args.model, overwrite=args.overwrite, show_progress=not args.no_progress)
+                              model_path=args.model, overwrite=args.overwrite, show_progress=not args.no_progress,
+                              predict_dir=args.predict)
     print(format_summary(report))
     print(f"wrote {args.json}" + (f" and {args.rrd}" if args.rrd else ""))
-    return 0 if report["fit"] is not None else 1
+    return 0 if report["model"] is not None else 1
 
 
 COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "captures": _cmd_captures, "compare": _cmd_compare, "simulate": _cmd_simulate,

@@ -16,7 +16,7 @@ import numpy as np
 from .map.elevation_map import BYTES_PER_CELL, ElevationMap
 from .frame import Frame
 from .map.fusion import FusionParams
-from .map.settings import check_bool, check_int, check_map_memory, check_real
+from .map.settings import check_bool, check_coordinates, check_int, check_map_memory, check_real
 from .mapper import Camera, Mapper
 
 __all__ = ["MappingConfig", "run_mapping", "map_error"]
@@ -220,6 +220,7 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
             if not np.array_equal(cam.K, frame.K):
                 raise ValueError(f"camera {frame.camera!r} changed its intrinsics at frame {frame.index}")
             T = np.eye(4) if frame.T_map_cam is None else frame.T_map_cam
+            check_coordinates(T[:3, 3], f"the camera position of frame {frame.index} (T_map_cam)")
             if first_stamp is None:
                 first_stamp = frame.stamp
             if config.follow:
