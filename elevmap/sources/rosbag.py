@@ -405,6 +405,9 @@ class RosbagSource(FrameSource):
                 if e["K"] is None:
                     self.skipped[(topic, "no camera info")] += 1
                     continue
+                if e["problem"] is not None:
+                    self.skipped[(topic, e["problem"])] += 1
+                    continue
                 if conn.msgtype == IMAGE:
                     depth = image_to_depth(msg, where)
                 else:
