@@ -204,8 +204,9 @@ def test_aims_slam_wall_and_floor_of_both_stretches(realdata, tmp_path):
     for stretch, key in (((141, 156), "S1_wall"), ((141, 156), "S1_floor"), ((1, 8), "S0_floor")):
         ref = fig[key]["plane"]
         p, angle = match(by_stretch[stretch], ref)
-        assert angle < 1.5, (key, p["normal"], ref["normal"])
-        assert p["offset_m"] == pytest.approx(ref["dist_m"], abs=0.01)
+        # within 0.5 deg and 5 mm of the figures' fits (the two stops' floors differ by 0.9 deg and 4.5 mm)
+        assert angle < 0.5, (key, p["normal"], ref["normal"])
+        assert p["offset_m"] == pytest.approx(ref["dist_m"], abs=0.005)
         # at least as many pixels as the figures' fit found in its region of the image
         assert p["pixels"] >= ref["inlier_pixels"]
         cap = cs.capture(p["id"])
