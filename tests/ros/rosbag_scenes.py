@@ -230,3 +230,15 @@ def write_bag(path, kind: str = "bag", *, depth: str = "16UC1", poses: str = "tf
             f.unlink()
         folder.rmdir()
     return path
+
+
+def unmappable_extras(b: BagBuilder, write):
+    """A depth topic without camera info, and one /camera frame 1 s after the last transform."""
+    late = T0 + 0.1 * N_FRAMES + 1.0
+    z = depth_m(T_map_base(T0) @ T_base_cam())
+    for s in frame_stamps()[:3]:
+        write("/rear/depth/image_rect_raw", "sensor_msgs/msg/Image", s, b.image(s, "rear_optical", z[::2, ::2]))
+    write("/camera/depth/image_rect_raw", "sensor_msgs/msg/Image", late, b.image(late, "camera_depth_optical_frame", z))
+    write("/camera/color/image_raw", "sensor_msgs/msg/Image", T0, b.t["sensor_msgs/msg/Image"](
+        header=b.header(T0, "color"), height=1, width=1, encoding="rgb8", is_bigendian=0, step=3,
+        data=np.zeros(3, np.uint8)))

@@ -11,7 +11,8 @@ import pytest
 from elevmap.pipeline import MappingConfig, run_mapping
 from elevmap.sources.rosbag import RosbagSource, carry_pose_cov
 from rosbag_scenes import (
-    BOX_TOP_M, BOX_XY, N_FRAMES, ODOM_COV, T0, BagBuilder, T_base_cam, T_map_base, depth_m, frame_stamps, write_bag,
+    BOX_TOP_M, BOX_XY, N_FRAMES, ODOM_COV, T0, BagBuilder, T_base_cam, T_map_base, depth_m, frame_stamps,
+    unmappable_extras, write_bag,
 )
 
 from conftest import REALDATA
@@ -137,20 +138,8 @@ def test_float_and_big_endian_padded_images_read_as_written(tmp_path, encoding):
         assert frames[5].depth_scale == 0.001
 
 
-def _extras(b: BagBuilder, write):
-    """A depth topic without camera info, and one /camera frame 1 s after the last transform."""
-    late = T0 + 0.1 * N_FRAMES + 1.0
-    z = depth_m(T_map_base(T0) @ T_base_cam())
-    for s in frame_stamps()[:3]:
-        write("/rear/depth/image_rect_raw", "sensor_msgs/msg/Image", s, b.image(s, "rear_optical", z[::2, ::2]))
-    write("/camera/depth/image_rect_raw", "sensor_msgs/msg/Image", late, b.image(late, "camera_depth_optical_frame", z))
-    write("/camera/color/image_raw", "sensor_msgs/msg/Image", T0, b.t["sensor_msgs/msg/Image"](
-        header=b.header(T0, "color"), height=1, width=1, encoding="rgb8", is_bigendian=0, step=3,
-        data=np.zeros(3, np.uint8)))
-
-
 def test_frames_that_cannot_be_mapped_are_skipped_and_counted(tmp_path):
-    path = write_bag(tmp_path / "skips.bag", "bag", extra=_extras)
+    path = write_bag(tmp_path / "skips.bag", "bag", extra=unmappable_extras)
     src, out = map_bag(path)
     s = src.summary()
     assert out["frames"] == s["frames_mapped"] == N_FRAMES
