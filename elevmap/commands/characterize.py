@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import noise_model as nm
-from noise_model.analysis import characterization as ch, planes
+from noise_model.analysis import characterization as ch, family_fit as ff, planes
 from noise_model.d435 import D435
 
 from ..fileio import check_outputs, json_ready, write_json_atomic
@@ -221,6 +221,27 @@ def _lateral_edge(depth, scale, K, plane, band, ref, W) -> dict:
     return out
 
 
+class _GivenRegion:
+    """The target's pixels as the capture set gives them (its mask, or for a plane target every pixel), in
+    place of a detected board: no edges, no corners."""
+
+    def __init__(self, region_mask, reason=None):
+        self.ok = reason is None
+        self.reason = reason
+        self.region_mask = region_mask
+        self.target_mask = region_mask
+        self.edges = {}
+        self.edge_reasons = {}
+        self.corners = None
+
+
+def _given_region(ref, mask) -> _GivenRegion:
+    region = np.isfinite(ref) if mask is None else (np.asarray(mask, dtype=bool) & np.isfinite(ref))
+    if region.sum() < 10:
+        return _GivenRegion(region, "the capture's mask holds fewer than 10 pixels with depth in most frames")
+    return _GivenRegion(region)
+
+
 def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: int = DETECTION_FRAMES) -> dict:
     """Measure one capture of a capture set.
 
@@ -260,7 +281,12 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
     depth = cs.load_depth(cap.id)
     N, H, W = depth.shape
     ref = _median_image(depth, scale, detection_frames)
-    det = detect_target(ref, cap.kind, (K[0, 2], K[1, 2]), region_box=_region_box(cap))
+    mask = cs.load_mask(cap.id)
+    masked = mask is not None or cap.kind == "plane"
+    if masked:
+        det = _given_region(ref, mask)
+    else:
+        det = detect_target(ref, cap.kind, (K[0, 2], K[1, 2]), region_box=_region_box(cap))
     if not det.ok:
         return {"id": cap.id, "failed": det.reason}
     vv, uu = np.nonzero(det.region_mask)
@@ -286,14 +312,20 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
     if band.sum() < 10:
         return {"id": cap.id, "failed": "fewer than 10 pixels of the central region lie on its plane"}
     z_c = float(np.median(z_pl[band]))
-    if _region_box(cap) is None:
+    if _region_box(cap) is None and not masked:
         band &= np.abs(z_pl - z_c) <= DEPTH_BAND_REL * z_c
-    # pixels that see something other than the plane in some frame (a sample beyond 5 robust sigma)
+    # pixels that see something other than the plane in some frame (a sample beyond 5 robust sigma). A
+    # given region may span many depths (a floor): there the deviations are compared in disparity units,
+    # dz / z^2, whose noise is nearly the same at every depth, so that far pixels are not all "wild"
     dev = samples[:, band] - z_pl[band][None, :]
+    unit = 1.0
+    if masked:
+        unit = (z_pl[band] / z_c) ** 2
+        dev = dev / unit[None, :]
     fin = np.isfinite(dev)
     sig = 1.4826 * float(np.median(np.abs(dev[fin] - np.median(dev[fin])))) if fin.any() else 0.0
     with np.errstate(invalid="ignore"):
-        wild = np.any(fin & (np.abs(dev) > 5.0 * max(sig, 0.5 * scale)), axis=0)
+        wild = np.any(fin & (np.abs(dev) > 5.0 * np.maximum(sig, 0.5 * scale / unit)), axis=0)
     clean = band.copy()
     clean[np.flatnonzero(band)[wild]] = False
     notes = {}
@@ -318,16 +350,25 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
         fracs.append(fit_f.n_inliers / okf.size)
 
     keep = clean if "axial" not in notes else band
+    bins = None
     if "axial" in notes:
         axial = {"sigma_z_m": None, "stderr_m": None, "plane_distance_sigma_m": None, "z_m": z_c,
                  "invalid_fraction": float(1.0 - np.isfinite(samples[:, band]).mean()), "reason": notes["axial"]}
     else:
         axial = ch.axial_noise(samples[:, keep], up[keep], vp[keep], plane, depth_scale=scale)
+        if masked:
+            bins = ch.axial_noise_bins(samples[:, keep], up[keep], vp[keep], plane, depth_scale=scale)
     t = cap.target
-    known = ch.known_plane(cap.distance_m, cap.yaw_deg, cap.pitch_deg)
-    syst = ch.systematic_error(mean_z[keep], known.depth_at(up[keep], vp[keep]))
     baseline = float(cs.camera.get("baseline_m") or D435.baseline_m)
-    syst["eq1_m"] = float(ch.eq1_rms_error(cap.distance_m, K[0, 0], W, baseline, D435.subpixel))
+    if cap.is_fitted:
+        # the target's distance is itself a fit to these frames: their error against it is zero by construction
+        syst = {"rms_error_m": None, "mean_error_m": None, "n_pixels": 0, "eq1_m": None}
+        notes["systematic"] = ("skipped: the capture's geometry is fitted to its own frames, so there is no measured "
+                               "distance to compare against (bias and scale are absorbed by the fit)")
+    else:
+        known = ch.known_plane(cap.distance_m, cap.yaw_deg, cap.pitch_deg)
+        syst = ch.systematic_error(mean_z[keep], known.depth_at(up[keep], vp[keep]))
+        syst["eq1_m"] = float(ch.eq1_rms_error(cap.distance_m, K[0, 0], W, baseline, D435.subpixel))
 
     rec = {
         "id": cap.id, "kind": cap.kind, "distance_m": cap.distance_m, "yaw_deg": cap.yaw_deg,
@@ -348,15 +389,23 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
         "corners_px": None if det.corners is None else det.corners.round(1).tolist(),
         "notes": notes,
         "target": t,
+        "geometry": cap.geometry,
+        "fx_px": float(K[0, 0]),
+        "axial_bins": None if bins is None else [{k: v for k, v in b.items() if not k.startswith("_")}
+                                                 for b in bins["bins"]],
     }
+    if bins is not None:
+        rec["_axial_bins"] = bins["bins"]
+        if bins["reason"]:
+            rec["notes"]["axial_bins"] = bins["reason"]
     if axial["reason"]:
         rec["notes"]["axial"] = axial["reason"]
     if keep.sum() < band.sum():
         rec["region_pixels_off_plane"] = int(band.sum() - keep.sum())
     for side in ("left", "right"):
         edge = det.edges.get(side)
-        if cap.kind == "wall":
-            rec["notes"][f"lateral_{side}"] = "a wall has no edges"
+        if cap.kind in ("wall", "plane"):
+            rec["notes"][f"lateral_{side}"] = f"a {cap.kind} has no edges"
             continue
         if edge is None:
             rec["notes"][f"lateral_{side}"] = det.edge_reasons.get(side, "edge not found")
@@ -394,32 +443,66 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
 # the whole set
 
 
-def _fit(records) -> tuple[dict | None, str | None, ch.AxialFit | None]:
-    rows = []
+def _fit_points(records) -> list[dict]:
+    """The measurements the fits use: one per capture (its region's axial noise), or for a capture whose
+    region is given by a mask or a plane target, one per depth bin; those whose noise exceeds MAX_REL_NOISE
+    of the depth are left out with a note."""
+    pts = []
     for r in records:
         if not r.get("axial_sigma_m"):
             continue
-        if r["axial_sigma_m"] > MAX_REL_NOISE * r["z_m"]:
-            r["notes"]["fit"] = (f"not fitted: sigma_z is {100 * r['axial_sigma_m'] / r['z_m']:.0f}% of the depth "
-                                 f"(> {100 * MAX_REL_NOISE:.0f}%): depths below zero are lost and the target "
-                                 "blends with what is behind it, so the noise cannot be measured reliably")
-            continue
-        rows.append(r)
-    if len(rows) < 5:
-        return None, (f"fitting sigma_z(z, theta) needs axial noise from at least 5 captures with >= 2 frames, "
-                      f"got {len(rows)}"), None
-    z = np.array([r["z_m"] for r in rows])
-    th = np.radians([r["theta_deg"] for r in rows])
-    s = np.array([r["axial_sigma_m"] for r in rows])
+        th = math.radians(r["theta_deg"])
+        if r.get("axial_bins"):
+            cand = [(f"{r['id']} z {b['z_range_m'][0]:g}-{b['z_range_m'][1]:g} m", b["z_m"], b["sigma_z_m"])
+                    for b in r["axial_bins"] if b["sigma_z_m"]]
+        else:
+            cand = [(r["id"], r["z_m"], r["axial_sigma_m"])]
+        for name, z, sig in cand:
+            if sig > MAX_REL_NOISE * z:
+                r["notes"].setdefault("fit", (f"not fitted: sigma_z is {100 * sig / z:.0f}% of the depth at {z:.2f} m "
+                                              f"(> {100 * MAX_REL_NOISE:.0f}%): depths below zero are lost and the "
+                                              "target blends with what is behind it, so the noise cannot be measured "
+                                              "reliably"))
+                continue
+            pts.append({"name": name, "id": r["id"], "z_m": float(z), "theta_rad": th, "sigma_m": float(sig),
+                        "fx_px": float(r.get("fx_px") or 0.0)})
+    return pts
+
+
+def _fit(records, camera) -> tuple[dict | None, str | None, ch.AxialFit | None, dict]:
+    """Fit both families; returns (paper fit dict, reason it is None, AxialFit, families) with ``families``
+    holding ``disparity`` (its fit dict or None), ``disparity_reason``, ``heldout`` and ``better``."""
+    pts = _fit_points(records)
+    baseline = float(camera.get("baseline_m") or D435.baseline_m)
+    fam = {"disparity": None, "disparity_reason": None, "heldout": None, "better": None, "_disparity": None,
+           "n_points": len(pts)}
+    z = np.array([p["z_m"] for p in pts])
+    th = np.array([p["theta_rad"] for p in pts])
+    s = np.array([p["sigma_m"] for p in pts])
+    fx = np.array([p["fx_px"] or float(camera["fx"]) for p in pts])
+    if pts:
+        dfit = ff.fit_disparity_model(z, th, s, fx, baseline)
+        fam["_disparity"] = dfit
+        fam["disparity"] = {**dfit.to_dict(), "form": "sigma_z = z^2 (s0 + s1 theta^2) / (f B)  [m; z in m, theta in "
+                                                     "rad, s0 in px, s1 in px/rad^2, f in px, B in m]",
+                            "measurements": [p["name"] for p in pts]}
+        fam["heldout"] = ff.heldout_errors(z, th, s, fx, baseline)
+        fam["better"] = fam["heldout"]["better"]
+    else:
+        fam["disparity_reason"] = "no capture's axial noise was measured"
+    if len(pts) < ff.MIN_PAPER_POINTS:
+        return None, (f"fitting sigma_z(z, theta) in the paper's form needs axial noise from at least "
+                      f"{ff.MIN_PAPER_POINTS} captures or depth bins with >= 2 frames, got {len(pts)}"), None, fam
     try:
         fit = ch.fit_axial_model(z, th, s)
     except (ValueError, RuntimeError) as exc:
-        return None, f"the fit failed: {exc}", None
-    for r, used in zip(rows, fit.inliers):
+        return None, f"the fit failed: {exc}", None, fam
+    for p, used in zip(pts, fit.inliers):
         if not used:
-            pred = float(fit.sigma_z(r["z_m"], math.radians(r["theta_deg"])))
-            r["notes"]["fit"] = (f"left out of the fit: {1000 * r['axial_sigma_m']:.2f} mm against "
-                                 f"{1000 * pred:.2f} mm from the other captures' fit")
+            r = next(r for r in records if r["id"] == p["id"])
+            pred = float(fit.sigma_z(p["z_m"], p["theta_rad"]))
+            r["notes"]["fit"] = (f"left out of the paper-family fit ({p['name']}): {1000 * p['sigma_m']:.2f} mm "
+                                 f"against {1000 * pred:.2f} mm from the other measurements' fit")
     Zg, Tg = np.meshgrid(_GRID_Z, np.radians(_GRID_THETA_DEG), indexing="ij")
     paper = nm.axial_sigma(Zg, Tg)
     mine = fit.sigma_z(Zg, Tg)
@@ -428,14 +511,14 @@ def _fit(records) -> tuple[dict | None, str | None, ch.AxialFit | None]:
     d = fit.to_dict()
     d.update({
         "form": "sigma_z = c0 + c1 z + c2 z^2 + c_theta z^(3/2) theta / (pi/2 - theta)^2  [m; z in m, theta in rad]",
-        "captures": [r["id"] for r, used in zip(rows, fit.inliers) if used],
-        "left_out": [r["id"] for r, used in zip(rows, fit.inliers) if not used],
+        "captures": sorted({p["id"] for p, used in zip(pts, fit.inliers) if used}),
+        "left_out": [p["name"] for p, used in zip(pts, fit.inliers) if not used],
         "paper_coefficients": list(D435.axial_coefficients),
         "vs_paper": {"grid": "z 0.4 to 2.1 m every 0.1 m x theta 0 to 75 deg every 15 deg",
                      "max_rel_diff_where_paper_below_0.05m": float(rel[below].max()),
                      "median_rel_diff_where_paper_below_0.05m": float(np.median(rel[below]))},
     })
-    return d, None, fit
+    return d, None, fit, fam
 
 
 def _lateral_usable(r) -> bool:
@@ -464,7 +547,8 @@ def _lateral_summary(records, side: str) -> dict:
 
 
 def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=None, *, model_path=None,
-                     overwrite: bool = False, show_progress: bool = True, spawn: bool = False) -> dict:
+                     overwrite: bool = False, show_progress: bool = True, spawn: bool = False,
+                     predict_dir=None) -> dict:
     """Characterise a camera from a capture set: per-capture noise, the sigma_z fit, sigma_L / sigma_R.
 
     Parameters
@@ -487,13 +571,19 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         A tqdm progress bar over the captures.
     spawn : bool
         Also stream the figures to a rerun viewer.
+    predict_dir : path, optional
+        Another capture set whose axial noise the fitted models predict (``prediction`` in the report).
 
     Returns
     -------
     dict
-        The report: ``format``, ``captures_dir``, ``camera``, ``fit`` (``coefficients`` [c0, c1, c2,
-        c_theta], ``stderr``, ``residual_rms_rel``, ``residual_rms_m``, ``n``, ``vs_paper``; None with
-        ``fit_reason`` when it cannot be fitted), ``sigma_L_m``, ``sigma_R_m``, ``sigma_L_px``,
+        The report: ``format``, ``captures_dir``, ``camera``, ``fit`` (the paper's family: ``coefficients``
+        [c0, c1, c2, c_theta], ``stderr``, ``residual_rms_rel``, ``residual_rms_m``, ``n``, ``vs_paper``; None
+        with ``fit_reason`` when it cannot be fitted), ``fit_disparity`` (the disparity family: ``s0_px``,
+        ``s1_px_per_rad2``, ``stderr``, ``s1_fixed``...; None with ``fit_disparity_reason``), ``heldout``
+        (:func:`noise_model.analysis.family_fit.heldout_errors`), ``family`` (the family of the model written:
+        the one with the smaller held-out error), ``skipped_statistics`` (captures with fitted geometry and
+        what was not computed for them), ``prediction`` (with ``predict_dir``), ``sigma_L_m``, ``sigma_R_m``, ``sigma_L_px``,
         ``sigma_R_px`` (90th percentiles; None when no edge was measurable), ``lateral`` (details),
         ``captures`` (one record per measured capture: ``id``, ``axial_sigma_m``, ``lateral_left_m``,
         ``lateral_right_m``, their ``_px`` and ``_stderr_m`` versions, ``plane_residual_std_m``,
@@ -505,6 +595,7 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
     from ..sources.captures import read_capture_set
 
     cs = read_capture_set(captures_dir)
+    other = None if predict_dir is None else read_capture_set(predict_dir)
     if model_path is None and json_path is not None:
         model_path = default_model_path(json_path)
     fig_paths = {k: Path(figures_dir) / v for k, v in FIGURE_FILES.items()} if figures_dir is not None else {}
@@ -523,7 +614,7 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         else:
             records.append(rec)
 
-    fit_d, fit_reason, fit = _fit(records)
+    fit_d, fit_reason, fit, fam = _fit(records, cs.camera)
     lat_l, lat_r = _lateral_summary(records, "left"), _lateral_summary(records, "right")
     report = {
         "format": REPORT_FORMAT,
@@ -532,6 +623,13 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         "camera_mismatches": list(cs.mismatches),
         "fit": fit_d,
         "fit_reason": fit_reason,
+        "fit_disparity": fam["disparity"],
+        "fit_disparity_reason": fam["disparity_reason"],
+        "heldout": fam["heldout"],
+        "family": None,
+        "skipped_statistics": [
+            {"id": r["id"], "statistics": ["systematic error (bias, scale)"], "reason": r["notes"]["systematic"]}
+            for r in records if r.get("geometry") == "fitted"],
         "sigma_L_m": lat_l["value_m"], "sigma_R_m": lat_r["value_m"],
         "sigma_L_px": lat_l["value_px"], "sigma_R_px": lat_r["value_px"],
         "lateral": {"percentile": ch.LATERAL_PERCENTILE,
@@ -544,18 +642,26 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         "model_path": None, "figures": [], "rrd": None,
     }
     model = None
-    if fit is not None:
+    better = fam["better"] if fam["better"] is not None else ("paper" if fit is not None else None)
+    if better == "paper" and fit is None:
+        better = "disparity"
+    if better is not None:
         cam = cs.camera
+        dfit = fam["_disparity"]
         model = ch.model_from_fit(
-            fit.coefficients, lat_l["value_m"], lat_r["value_m"],
-            name=f"{cam.get('model') or 'D435'} (characterised from {cs.folder.name})",
-            baseline_m=cam.get("baseline_m"), mode=(int(cam["width"]), int(cam["height"]), float(cam["fx"])))
+            None if fit is None else fit.coefficients, lat_l["value_m"], lat_r["value_m"],
+            name=f"{cam.get('model') or 'D435'} (characterised from {cs.folder.name}, {better} family)",
+            baseline_m=cam.get("baseline_m"), mode=(int(cam["width"]), int(cam["height"]), float(cam["fx"])),
+            disparity=None if better == "paper" else (dfit.s0, dfit.s1))
+        report["family"] = better
         report["model"] = model.to_dict()
         report["model"]["lateral_from"] = {
             "sigma_L": "measured" if lat_l["value_m"] is not None else "the paper (no left edge measured)",
             "sigma_R": "measured" if lat_r["value_m"] is not None else "the paper (no right edge measured)"}
     else:
         report["model"] = None
+    if other is not None:
+        report["prediction"] = _predict(other, model, fit, fam["_disparity"], cs.camera, show_progress)
     # outputs last, the JSON report at the very end; on failure the files this call created are removed
     created = []
     try:
@@ -593,6 +699,58 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
 
 
 # ------------------------------------------------------------------------------------------------
+# predicting another capture set
+
+
+#: A fitted model's prediction of another set is within this factor of the measured noise when the
+#: ratio measured / predicted lies in [1 / PREDICTION_FACTOR, PREDICTION_FACTOR].
+PREDICTION_FACTOR = 1.25
+
+
+def _predict(other, model, fit, dfit, camera, show_progress: bool) -> dict:
+    """The axial noise of ``other``'s captures (per depth bin where a mask or plane target gives the region)
+    against the models' sigma_z: the model written, each family as fitted, and the paper's published model.
+    Each bin's prediction is the median over its pixels of sigma_z at the pixel's plane depth, the plane's
+    incidence angle and ``other``'s focal length; ratio = measured / predicted."""
+    from tqdm import tqdm
+
+    models = {"paper_published": D435}
+    if model is not None:
+        models["model"] = model
+    baseline = float(camera.get("baseline_m") or D435.baseline_m)
+    if fit is not None:
+        models["paper_fitted"] = D435.with_coefficients(fit.coefficients, name="paper family, fitted")
+    if dfit is not None:
+        models["disparity_fitted"] = D435.with_disparity(dfit.s0, dfit.s1, baseline_m=baseline,
+                                                         name="disparity family, fitted")
+    out = {"captures_dir": str(other.folder), "factor": PREDICTION_FACTOR,
+           "models": {k: {"name": m.name, "family": m.family} for k, m in models.items()},
+           "captures": [], "failures": []}
+    for cap in tqdm(other.captures, desc="predict", unit="capture", disable=not show_progress):
+        rec = characterize_capture(other, cap)
+        if "failed" in rec:
+            out["failures"].append({"id": rec["id"], "reason": rec["failed"]})
+            continue
+        if not rec.get("axial_sigma_m"):
+            out["failures"].append({"id": rec["id"], "reason": rec["notes"].get("axial", "no axial noise")})
+            continue
+        theta = math.radians(rec["theta_deg"])
+        fx = float(rec["fx_px"])
+        bins = rec.get("_axial_bins") or [{"z_range_m": None, "z_m": rec["z_m"], "sigma_z_m": rec["axial_sigma_m"],
+                                           "n_pixels": rec["region_pixels"], "_z_pixels_m": np.array([rec["z_m"]])}]
+        rows = []
+        for b in bins:
+            zp = np.asarray(b["_z_pixels_m"], dtype=np.float64)
+            pred = {k: float(np.median(nm.axial_sigma(zp, theta, m, fx_px=fx))) for k, m in models.items()}
+            rows.append({"z_range_m": b["z_range_m"], "z_m": b["z_m"], "n_pixels": b["n_pixels"],
+                         "real_sigma_m": b["sigma_z_m"], "predicted_sigma_m": pred,
+                         "ratio": {k: b["sigma_z_m"] / v for k, v in pred.items()}})
+        out["captures"].append({"id": rec["id"], "kind": rec["kind"], "geometry": rec.get("geometry"),
+                                "theta_deg": rec["theta_deg"], "bins": rows})
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
 # figures data (shared by plots.py and the rerun recording)
 
 
@@ -605,8 +763,9 @@ def figure_series(report: dict) -> dict:
     ``lateral[side + "_unused"]`` those left out (noise too large for the plane to convert pixels).
     """
     caps = report["captures"]
-    walls = [c for c in caps if c["kind"] == "wall"]
-    base = walls or caps
+    measured = [c for c in caps if c.get("geometry", "measured") != "fitted"]     # fitted: no systematic error
+    walls = [c for c in measured if c["kind"] == "wall"]
+    base = walls or measured
     fig2 = {"kind": "wall" if walls else "board", "distance_m": [], "rms_error_m": [], "residual_m": [],
             "eq1_m": [], "theta_deg": None}
     if base:
@@ -683,7 +842,7 @@ def format_summary(report: dict) -> str:
     if fit:
         c, e, pc = fit["coefficients"], fit["stderr"], fit["paper_coefficients"]
         lines.append("sigma_z = c0 + c1 z + c2 z^2 + c_theta z^1.5 theta/(pi/2-theta)^2, fitted on "
-                     f"{fit['n']} captures (residual {100 * fit['residual_rms_rel']:.1f}% RMS):")
+                     f"{fit['n']} measurements (residual {100 * fit['residual_rms_rel']:.1f}% RMS):")
         for name, v, s_, p in zip(("c0", "c1", "c2", "c_theta"), c, e, pc):
             lines.append(f"  {name:8s} {v:11.6g} +- {s_:.2g}   (paper {p:g})")
         vp = fit["vs_paper"]
@@ -691,7 +850,34 @@ def format_summary(report: dict) -> str:
                      f"max {100 * vp['max_rel_diff_where_paper_below_0.05m']:.1f}%"
                      f", median {100 * vp['median_rel_diff_where_paper_below_0.05m']:.1f}%")
     else:
-        lines.append(f"no fit: {report.get('fit_reason')}")
+        lines.append(f"no fit of the paper's family: {report.get('fit_reason')}")
+    dfit = report.get("fit_disparity")
+    if dfit:
+        lines.append(f"sigma_z = z^2 (s0 + s1 theta^2) / (f B), fitted on {dfit['n']} measurements (residual "
+                     f"{100 * dfit['residual_rms_rel']:.1f}% RMS): s0 {dfit['s0_px']:.4f} px, s1 "
+                     f"{dfit['s1_px_per_rad2']:.4f} px/rad^2" + (f" ({dfit['s1_fixed']})" if dfit["s1_fixed"] else ""))
+    held = report.get("heldout")
+    if held:
+        parts = [f"{fam} {100 * v['rms_log_error']:.0f}% ({v['n_predicted']} measurements)"
+                 for fam, v in held["families"].items() if v["rms_log_error"] is not None]
+        lines.append("held-out error (RMS of log measured/predicted, blocks of distance and angle): "
+                     + (", ".join(parts) or "no block could be predicted"))
+    if report.get("family"):
+        lines.append(f"model written: the {report['family']} family")
+    for sk in report.get("skipped_statistics", []):
+        lines.append(f"  {sk['id']}: no {', '.join(sk['statistics'])}: geometry fitted")
+    pred = report.get("prediction")
+    if pred:
+        names = list(pred["models"])
+        lines.append(f"prediction of {pred['captures_dir']} (measured / predicted sigma_z per depth bin):")
+        lines.append("  capture            z [m]       real [mm]  " + "  ".join(f"{n:>16s}" for n in names))
+        for c in pred["captures"]:
+            for b in c["bins"]:
+                zr = "whole" if b["z_range_m"] is None else f"{b['z_range_m'][0]:.1f}-{b['z_range_m'][1]:.1f}"
+                lines.append(f"  {c['id'][:18]:18s} {zr:11s} {1000 * b['real_sigma_m']:8.2f}  "
+                             + "  ".join(f"{b['ratio'][n]:16.3f}" for n in names))
+        for f in pred["failures"]:
+            lines.append(f"  not measured: {f['id']}: {f['reason']}")
     for side in ("L", "R"):
         v, px = report.get(f"sigma_{side}_m"), report.get(f"sigma_{side}_px")
         lines.append(f"sigma_{side} (90th percentile): " + ("not measured" if v is None else

@@ -54,7 +54,10 @@ __all__ = [
     "axial_model",
     "fit_axial_model",
     "model_from_fit",
+    "axial_noise_bins",
     "LATERAL_PERCENTILE",
+    "DEPTH_BIN_M",
+    "MIN_BIN_PIXELS",
 ]
 
 #: sigma_L and sigma_R are this percentile of the captures' lateral noise (the paper's choice).
@@ -75,6 +78,77 @@ def _check_samples(samples, m: int, name="samples_m") -> np.ndarray:
     if top > 100.0:
         raise ValueError(f"{name} holds values up to {top:.1f}: depth must be in metres")
     return s
+
+
+def _pixel_variances(samples_m, up, vp, plane: Plane, min_valid_fraction: float, frame_correction: bool):
+    """Steps 1-3 of :func:`axial_noise`: (out, good, var_p, n_g) with ``out`` its result dict without the sigmas
+    (``reason`` set when not measurable, then var_p is None), ``good`` (M,) the pixels used, ``var_p`` their
+    chi-square-median-scaled temporal variances [m^2] and ``n_g`` their valid frame counts."""
+    up = np.asarray(up, dtype=np.float64).ravel()
+    vp = np.asarray(vp, dtype=np.float64).ravel()
+    if up.shape != vp.shape:
+        raise ValueError(f"up and vp must have the same shape, got {up.shape} and {vp.shape}")
+    s = _check_samples(samples_m, up.size)
+    N, M = s.shape
+    z_pl = plane.depth_at(up, vp)
+    valid = np.isfinite(s) & (s > 0) & np.isfinite(z_pl)[None, :]
+    out = {"sigma_z_m": None, "stderr_m": None, "plane_distance_sigma_m": None,
+           "z_m": float(np.nanmedian(z_pl)) if np.isfinite(z_pl).any() else None,
+           "theta_rad": plane.theta_rad, "n_frames": int(N), "n_pixels": 0,
+           "invalid_fraction": float(1.0 - valid.mean()) if valid.size else 1.0, "reason": None}
+    if N < 2:
+        out["reason"] = f"the temporal standard deviation needs >= 2 frames, the capture has {N}"
+        return out, None, None, None
+    e = np.where(valid, s - z_pl[None, :], np.nan)
+    dof_loss = 0.0
+    if frame_correction:
+        A = np.stack([np.ones(M), up, vp], axis=1)
+        w = z_pl * z_pl
+        for f in range(N):
+            ok = valid[f]
+            if ok.sum() < 10:
+                continue
+            y = e[f, ok] / w[ok]
+            # one clipped refit keeps a few wild samples from tilting the frame's plane
+            coef, *_ = np.linalg.lstsq(A[ok], y, rcond=None)
+            r = y - A[ok] @ coef
+            mad = 1.4826 * np.median(np.abs(r - np.median(r)))
+            keep = np.abs(r) <= max(5.0 * mad, 1e-12)
+            if keep.sum() >= 10:
+                coef, *_ = np.linalg.lstsq(A[ok][keep], y[keep], rcond=None)
+            e[f] -= w * (A @ coef)
+        dof_loss = 3.0
+    n_p = valid.sum(axis=0)
+    need = max(2, int(math.ceil(float(min_valid_fraction) * N)))
+    good = n_p >= need
+    out["n_pixels"] = int(good.sum())
+    if good.sum() < 10:
+        out["reason"] = (f"only {int(good.sum())} pixels of the region are valid in >= {need} of {N} frames "
+                         "(need 10)")
+        return out, good, None, None
+    eg = e[:, good]
+    var_p = np.nanvar(eg, axis=0, ddof=1)
+    n_g = n_p[good]
+    var_p = var_p * (n_g - 1) / stats.chi2.median(n_g - 1)
+    if dof_loss:
+        m_eff = max(float(np.median(valid[:, good].sum(axis=1))), dof_loss + 1.0)
+        var_p = var_p * m_eff / (m_eff - dof_loss)
+    return out, good, var_p, n_g
+
+
+def _sigma_from_variances(var_p, n_g, depth_scale) -> tuple[float, float]:
+    """Step 4 of :func:`axial_noise` over a set of pixels: (sigma [m], its relative standard error) from the
+    median of their variances, Sheppard's correction applied where the noise exceeds one depth unit."""
+    var = float(np.median(var_p))
+    if depth_scale is not None:
+        q = check_positive_scalar(depth_scale, "depth_scale", upper=0.1, unit=" m per unit")
+        if var > q * q:
+            var -= q * q / 12.0
+    sigma = math.sqrt(max(var, 0.0))
+    n_med = float(np.median(n_g))
+    # median of M chi2-scaled variances: sd ~ sqrt(pi/2) var sqrt(2/(n-1)) / sqrt(M); sigma's is half
+    rel_se = 0.5 * math.sqrt(math.pi / 2.0) * math.sqrt(2.0 / max(n_med - 1.0, 1.0)) / math.sqrt(var_p.size)
+    return sigma, rel_se
 
 
 def axial_noise(samples_m, up, vp, plane: Plane, depth_scale: float | None = None,
@@ -117,68 +191,73 @@ def axial_noise(samples_m, up, vp, plane: Plane, depth_scale: float | None = Non
         incidence angle), ``n_frames``, ``n_pixels`` (pixels used), ``invalid_fraction`` (of all
         samples). ``sigma_z_m`` is None (with ``reason``) when fewer than 2 frames or 10 pixels qualify.
     """
+    out, good, var_p, n_g = _pixel_variances(samples_m, up, vp, plane, min_valid_fraction, frame_correction)
+    if var_p is None:
+        return out
     up = np.asarray(up, dtype=np.float64).ravel()
     vp = np.asarray(vp, dtype=np.float64).ravel()
-    if up.shape != vp.shape:
-        raise ValueError(f"up and vp must have the same shape, got {up.shape} and {vp.shape}")
-    s = _check_samples(samples_m, up.size)
-    N, M = s.shape
-    z_pl = plane.depth_at(up, vp)
-    valid = np.isfinite(s) & (s > 0) & np.isfinite(z_pl)[None, :]
-    out = {"sigma_z_m": None, "stderr_m": None, "plane_distance_sigma_m": None,
-           "z_m": float(np.nanmedian(z_pl)) if np.isfinite(z_pl).any() else None,
-           "theta_rad": plane.theta_rad, "n_frames": int(N), "n_pixels": 0,
-           "invalid_fraction": float(1.0 - valid.mean()) if valid.size else 1.0, "reason": None}
-    if N < 2:
-        out["reason"] = f"the temporal standard deviation needs >= 2 frames, the capture has {N}"
-        return out
-    e = np.where(valid, s - z_pl[None, :], np.nan)
-    dof_loss = 0.0
-    if frame_correction:
-        A = np.stack([np.ones(M), up, vp], axis=1)
-        w = z_pl * z_pl
-        for f in range(N):
-            ok = valid[f]
-            if ok.sum() < 10:
-                continue
-            y = e[f, ok] / w[ok]
-            # one clipped refit keeps a few wild samples from tilting the frame's plane
-            coef, *_ = np.linalg.lstsq(A[ok], y, rcond=None)
-            r = y - A[ok] @ coef
-            mad = 1.4826 * np.median(np.abs(r - np.median(r)))
-            keep = np.abs(r) <= max(5.0 * mad, 1e-12)
-            if keep.sum() >= 10:
-                coef, *_ = np.linalg.lstsq(A[ok][keep], y[keep], rcond=None)
-            e[f] -= w * (A @ coef)
-        dof_loss = 3.0
-    n_p = valid.sum(axis=0)
-    need = max(2, int(math.ceil(float(min_valid_fraction) * N)))
-    good = n_p >= need
-    out["n_pixels"] = int(good.sum())
-    if good.sum() < 10:
-        out["reason"] = (f"only {int(good.sum())} pixels of the region are valid in >= {need} of {N} frames "
-                         "(need 10)")
-        return out
-    eg = e[:, good]
-    var_p = np.nanvar(eg, axis=0, ddof=1)
-    n_g = n_p[good]
-    var_p = var_p * (n_g - 1) / stats.chi2.median(n_g - 1)
-    if dof_loss:
-        m_eff = max(float(np.median(valid[:, good].sum(axis=1))), dof_loss + 1.0)
-        var_p = var_p * m_eff / (m_eff - dof_loss)
-    var = float(np.median(var_p))
-    if depth_scale is not None:
-        q = check_positive_scalar(depth_scale, "depth_scale", upper=0.1, unit=" m per unit")
-        if var > q * q:
-            var -= q * q / 12.0
-    sigma = math.sqrt(max(var, 0.0))
-    n_med = float(np.median(n_g))
-    # median of M chi2-scaled variances: sd ~ sqrt(pi/2) var sqrt(2/(n-1)) / sqrt(M); sigma's is half
-    rel_se = 0.5 * math.sqrt(math.pi / 2.0) * math.sqrt(2.0 / max(n_med - 1.0, 1.0)) / math.sqrt(good.sum())
+    sigma, rel_se = _sigma_from_variances(var_p, n_g, depth_scale)
     cosine = np.abs(plane.normal[0] * up[good] + plane.normal[1] * vp[good] + plane.normal[2])
     out.update(sigma_z_m=sigma, stderr_m=sigma * rel_se,
                plane_distance_sigma_m=sigma * float(np.median(cosine)))
     return out
+
+
+#: Width [m] of the depth bins of :func:`axial_noise_bins`.
+DEPTH_BIN_M = 0.1
+#: A depth bin with fewer pixels than this is left out (its median variance would scatter too much).
+MIN_BIN_PIXELS = 100
+
+
+def axial_noise_bins(samples_m, up, vp, plane: Plane, depth_scale: float | None = None, bin_m: float = DEPTH_BIN_M,
+                     min_pixels: int = MIN_BIN_PIXELS, min_valid_fraction: float = 0.5,
+                     frame_correction: bool = True) -> dict:
+    """Axial noise of one capture per depth bin: :func:`axial_noise` over the pixels of each bin of plane depth.
+
+    A plane seen at a grazing angle (a floor from a robot) spans a wide range of depths, over which sigma_z
+    changes many times over; one median over all its pixels would say little. The pixels' temporal
+    variances (steps 1-3 of :func:`axial_noise`, the frame correction fitted over the whole region) are
+    grouped by their plane depth into bins ``bin_m`` wide (edges at multiples of ``bin_m``), and each
+    bin's sigma is the median of its variances with Sheppard's correction (step 4).
+
+    Parameters
+    ----------
+    samples_m, up, vp, plane, depth_scale, min_valid_fraction, frame_correction
+        As :func:`axial_noise`.
+    bin_m : float
+        Bin width [m].
+    min_pixels : int
+        Bins with fewer usable pixels are left out.
+
+    Returns
+    -------
+    dict
+        ``bins``: one dict per bin, nearest first: ``z_range_m`` [lo, hi), ``z_m`` (median plane depth of its
+        pixels), ``sigma_z_m``, ``stderr_m``, ``n_pixels``, and ``_z_pixels_m`` (the plane depth of each of its
+        pixels, for predictions); ``theta_rad`` (the plane's incidence angle), ``n_frames``, ``n_pixels``,
+        ``reason`` (why there are no bins, else None).
+    """
+    width = check_positive_scalar(bin_m, "bin_m", upper=10.0, unit=" m")
+    out, good, var_p, n_g = _pixel_variances(samples_m, up, vp, plane, min_valid_fraction, frame_correction)
+    res = {"bins": [], "theta_rad": plane.theta_rad, "n_frames": out["n_frames"], "n_pixels": out["n_pixels"],
+           "reason": out["reason"]}
+    if var_p is None:
+        return res
+    up = np.asarray(up, dtype=np.float64).ravel()
+    vp = np.asarray(vp, dtype=np.float64).ravel()
+    z_pl = plane.depth_at(up[good], vp[good])
+    k = np.floor(z_pl / width + 1e-9).astype(np.int64)
+    for b in np.unique(k):
+        sel = k == b
+        if sel.sum() < max(10, int(min_pixels)):
+            continue
+        sigma, rel_se = _sigma_from_variances(var_p[sel], n_g[sel], depth_scale)
+        res["bins"].append({"z_range_m": [round(float(b * width), 9), round(float((b + 1) * width), 9)],
+                            "z_m": float(np.median(z_pl[sel])), "sigma_z_m": sigma, "stderr_m": sigma * rel_se,
+                            "n_pixels": int(sel.sum()), "_z_pixels_m": z_pl[sel]})
+    if not res["bins"]:
+        res["reason"] = f"no depth bin of {width:g} m holds {max(10, int(min_pixels))} usable pixels"
+    return res
 
 
 # ------------------------------------------------------------------------------------------------
@@ -633,13 +712,15 @@ def fit_axial_model(z_m, theta_rad, sigma_m, p0=None, iterations: int = 3, robus
 
 def model_from_fit(coefficients, sigma_L_m: float | None = None, sigma_R_m: float | None = None,
                    name: str = "D435 (own characterisation)", base: SensorModel = D435,
-                   baseline_m: float | None = None, mode: tuple[int, int, float] | None = None) -> SensorModel:
+                   baseline_m: float | None = None, mode: tuple[int, int, float] | None = None,
+                   disparity: tuple[float, float] | None = None) -> SensorModel:
     """A :class:`noise_model.SensorModel` holding a user's own fit (save it with ``SensorModel.save``).
 
     Parameters
     ----------
-    coefficients : sequence of 4 floats
-        (c0, c1, c2, c_theta) from :func:`fit_axial_model`.
+    coefficients : sequence of 4 floats or None
+        (c0, c1, c2, c_theta) from :func:`fit_axial_model` (None: ``base``'s, for a disparity model whose
+        paper-family coefficients were not fitted).
     sigma_L_m, sigma_R_m : float, optional
         Lateral noise [m]; ``base``'s where None (not measured: walls only).
     name : str
@@ -650,6 +731,9 @@ def model_from_fit(coefficients, sigma_L_m: float | None = None, sigma_R_m: floa
     mode : (width, height, fx), optional
         The characterised depth mode and its focal length [px]: its horizontal field of view
         2 atan(width / (2 fx)) replaces the default of that mode.
+    disparity : (s0, s1), optional
+        sigma_d(theta) = s0 + s1 theta^2 [px] (:func:`noise_model.analysis.family_fit.fit_disparity_model`):
+        the model is then of the disparity family.
     """
     changes = {"name": str(name)}
     if sigma_L_m is not None:
@@ -658,7 +742,9 @@ def model_from_fit(coefficients, sigma_L_m: float | None = None, sigma_R_m: floa
         changes["sigma_R"] = check_positive_scalar(sigma_R_m, "sigma_R_m", upper=10.0, unit=" m")
     if baseline_m is not None:
         changes["baseline_m"] = check_positive_scalar(baseline_m, "baseline_m", upper=2.0, unit=" m")
-    model = base.with_coefficients(coefficients, **changes)
+    model = base.with_coefficients(base.axial_coefficients if coefficients is None else coefficients, **changes)
+    if disparity is not None:
+        model = model.with_disparity(float(disparity[0]), float(disparity[1]), name=model.name)
     if mode is not None:
         w, h, fx = int(mode[0]), int(mode[1]), check_positive_scalar(mode[2], "fx", upper=1e5, unit=" px")
         hfov = dict(model.hfov_deg)

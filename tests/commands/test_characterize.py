@@ -270,6 +270,10 @@ def test_paper_grid_gives_back_the_papers_model(paper_grid_set, tmp_path):
     # the fitted model, next to the report, loads and holds the fit
     model = nm.SensorModel.load(tmp_path / "r.model.json")
     assert list(model.axial_coefficients) == rep["fit"]["coefficients"]
+    # data of the paper's model: its family predicts held-out blocks of distance and angle better
+    assert rep["family"] == "paper" and model.family == "paper"
+    held = rep["heldout"]["families"]
+    assert held["paper"]["rms_log_error_common"] < held["disparity"]["rms_log_error_common"]
     assert model.sigma_L == rep["sigma_L_m"] and model.sigma_R == rep["sigma_R_m"]
 
 

@@ -1,0 +1,130 @@
+"""`elevmap characterize` with both model families: plane targets with masks and fitted geometry, the
+disparity family's fit, held-out blocks, the model file and the prediction of another capture set; and,
+with the genuine aims_slam recording, the wall-to-floor prediction."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import noise_model as nm
+from elevmap.commands.characterize import format_summary, run_characterize
+from elevmap.sources.captures import write_capture_set
+from noise_model.analysis import family_fit as ff
+
+W, H, F = 160, 120, 100.0
+CAMERA = {"model": "D435", "width": W, "height": H, "fx": F, "fy": F, "ppx": (W - 1) / 2, "ppy": (H - 1) / 2,
+          "depth_scale": 0.001, "baseline_m": 0.05}
+#: The simulated camera: sigma_d = 0.06 + 0.05 theta^2 px.
+TRUE = nm.D435.with_disparity(0.06, 0.05, baseline_m=0.05)
+
+
+def _plane(normal_to_camera, offset_m):
+    m = np.asarray(normal_to_camera, dtype=float)
+    return m / np.linalg.norm(m), float(offset_m)
+
+
+def _frames(rng, normal, offset, model, n_frames, mask_rows=None):
+    """Depth frames (uint16 mm) of the plane m . p + offset = 0 with per-pixel noise of ``model`` at the plane's
+    angle to the optical axis, and its mask (the rows given, where the plane is within 0.3-4 m)."""
+    v, u = np.mgrid[0:H, 0:W]
+    ray = np.stack([(u - CAMERA["ppx"]) / F, (v - CAMERA["ppy"]) / F, np.ones((H, W))], axis=-1)
+    denom = -(ray @ normal)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(denom > 1e-6, offset / denom, np.nan)
+    mask = np.isfinite(z) & (z > 0.3) & (z < 4.0)
+    if mask_rows is not None:
+        mask &= (v >= mask_rows[0]) & (v < mask_rows[1])
+    theta = math.acos(abs(normal[2]))
+    zt = np.where(mask, z, 1.0)
+    sig = nm.axial_sigma(zt, theta, model, fx_px=F)
+    d = zt[None] + sig[None] * rng.standard_normal((n_frames, H, W))
+    depth = np.where(mask[None] & (d > 0), np.round(d / 0.001), 0).astype(np.uint16)
+    return depth, mask
+
+
+def _write_set(folder, rng, planes, model=TRUE, n_frames=12):
+    caps = []
+    for cid, (normal, offset, rows) in planes.items():
+        n, o = _plane(normal, offset)
+        depth, mask = _frames(rng, n, o, model, n_frames, rows)
+        caps.append(({"id": cid, "target": {"kind": "plane", "normal": list(n), "offset_m": o},
+                      "geometry": "fitted"}, depth, mask))
+    return write_capture_set(folder, CAMERA, caps)
+
+
+#: A wall seen at 20 deg, a second wall at 45 deg and a floor seen at 65 deg (normals towards the camera).
+FIT_PLANES = {
+    "wall20": ((math.sin(math.radians(20)), 0.0, -math.cos(math.radians(20))), 1.0, None),
+    "wall45": ((-math.sin(math.radians(45)), 0.0, -math.cos(math.radians(45))), 1.6, None),
+    "floor65": ((0.0, -math.sin(math.radians(65)), -math.cos(math.radians(65))), 0.6, (62, 120)),
+}
+
+
+def test_disparity_fit_recovers_sigma_d_and_fixes_s1_at_one_angle():
+    rng = np.random.default_rng(0)
+    z = rng.uniform(0.5, 2.5, 40)
+    t = rng.choice(np.radians([10.0, 35.0, 60.0]), 40)
+    s = TRUE.with_focal(383.8)
+    sig = nm.axial_sigma(z, t, s) * np.exp(0.03 * rng.standard_normal(40))
+    fit = ff.fit_disparity_model(z, t, sig, 383.8, 0.05)
+    assert fit.s0 == pytest.approx(0.06, rel=0.05) and fit.s1 == pytest.approx(0.05, rel=0.15)
+    assert fit.s1_fixed is None and np.all(np.isfinite(fit.stderr))
+    np.testing.assert_allclose(fit.sigma_z(z, t, 383.8), nm.axial_sigma(z, t, nm.D435.with_disparity(
+        fit.s0, fit.s1), fx_px=383.8), rtol=1e-12)
+    one = ff.fit_disparity_model(z, np.full(40, 0.4), sig, 383.8, 0.05)
+    assert one.s1 == 0.0 and "fixed at 0" in one.s1_fixed
+    # sigma_d shrinking with the angle: s1 stays at its bound 0
+    shrink = ff.fit_disparity_model(z, t, 0.1 * z * z / (383.8 * 0.05) * (1.0 - 0.3 * t), 383.8, 0.05)
+    assert shrink.s1 == 0.0
+    with pytest.raises(ValueError, match="theta_rad"):
+        ff.fit_disparity_model(z, np.degrees(t), sig, 383.8, 0.05)
+    with pytest.raises(ValueError, match="fx_px"):
+        ff.fit_disparity_model(z, t, sig, -1.0, 0.05)
+
+
+def test_heldout_blocks_prefer_the_family_the_data_came_from():
+    rng = np.random.default_rng(1)
+    zz, tt = np.meshgrid(np.arange(0.5, 2.6, 0.25), np.radians(np.arange(0.0, 76.0, 15.0)), indexing="ij")
+    z, t = zz.ravel(), tt.ravel()
+    noise = np.exp(0.05 * rng.standard_normal(z.size))
+    disp = ff.heldout_errors(z, t, nm.axial_sigma(z, t, TRUE, fx_px=424.0) * noise, 424.0, 0.05)
+    assert disp["better"] == "disparity" and disp["families"]["disparity"]["rms_log_error_common"] < 0.1
+    paper = ff.heldout_errors(z, t, nm.axial_sigma(z, t) * noise, 424.0, 0.05)
+    assert paper["better"] == "paper"
+    labels, names = ff.distance_angle_blocks(z, t)
+    assert len(names) == labels.max() + 1 == len(disp["blocks"])
+
+
+def test_characterize_fits_both_families_on_plane_captures_and_predicts_another_set(tmp_path):
+    rng = np.random.default_rng(2)
+    _write_set(tmp_path / "fit", rng, FIT_PLANES)
+    _write_set(tmp_path / "other", rng, {"floor70": ((0.0, -math.sin(math.radians(70)), -math.cos(math.radians(70))),
+                                                     0.63, (66, 120))}, n_frames=8)
+    report = run_characterize(tmp_path / "fit", json_path=tmp_path / "r.json", show_progress=False,
+                              predict_dir=tmp_path / "other")
+    d = report["fit_disparity"]
+    assert d["s0_px"] == pytest.approx(0.06, rel=0.1) and d["s1_px_per_rad2"] == pytest.approx(0.05, rel=0.3)
+    assert report["family"] == "disparity"
+    # fitted geometry: no systematic error, and the report says so
+    assert {s["id"] for s in report["skipped_statistics"]} == set(FIT_PLANES)
+    for c in report["captures"]:
+        assert c["systematic"]["rms_error_m"] is None and "fitted" in c["notes"]["systematic"]
+        assert c["lateral_left_m"] is None and c["notes"]["lateral_left"] == "a plane has no edges" and c["axial_bins"]
+    # the model file is the disparity family and reads back as written
+    model = nm.SensorModel.load(tmp_path / "r.model.json")
+    assert model.family == "disparity" and model.disparity_sigma_px == pytest.approx((d["s0_px"], d["s1_px_per_rad2"]))
+    assert model.to_dict() == {k: v for k, v in report["model"].items() if k != "lateral_from"}
+    # the other set's floor, per depth bin: the fitted disparity model within 10 %, the paper's far off
+    bins = report["prediction"]["captures"][0]["bins"]
+    assert len(bins) >= 5
+    for b in bins:
+        assert b["ratio"]["model"] == pytest.approx(1.0, abs=0.1)
+        assert b["ratio"]["paper_published"] < 0.2
+    text = format_summary(report)
+    assert "disparity" in text and "floor70" in text and "geometry fitted" in text
+    on_disk = json.loads((tmp_path / "r.json").read_text())
+    assert on_disk["family"] == "disparity" and "_z_pixels_m" not in json.dumps(on_disk)
