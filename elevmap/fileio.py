@@ -236,6 +236,9 @@ def check_outputs(outputs: Mapping[str, object], overwrite: bool = False, inputs
         overwrite`` (an input), ``is a directory``, ``folder does not exist``, ``cannot write``,
         ``different files`` and ``exists; pass --overwrite``.
     """
+    for path in outputs.values():
+        if path is not None:
+            remove_leftovers(path)
     ins = input_files(inputs)
     seen: dict[Path, str] = {}
     out: dict[str, Path | None] = {}
@@ -244,7 +247,6 @@ def check_outputs(outputs: Mapping[str, object], overwrite: bool = False, inputs
             out[what] = None
             continue
         p = Path(path)
-        remove_leftovers(p)
         key = p.resolve()
         if key in ins:
             raise ValueError(f"{what} {path} is an input of this run; refusing to overwrite it")
