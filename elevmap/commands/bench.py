@@ -61,7 +61,7 @@ def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
     return 1e3 * float(np.median(times))
 
 
-GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame", "render", "stereo")
+GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame", "render", "stereo", "ros")
 MAPPER_SIZES = ((1280, 720), (848, 480), (424, 240))
 #: The physical D435's time budget per frame [ms] at each size (width, height) on a 2-core machine.
 STEREO_TARGET_MS = {(424, 240): 150.0, (848, 480): 600.0}
@@ -203,6 +203,37 @@ def _bench_stereo(frames, n, bar):
     return out
 
 
+#: Time one map may take to become a ROS message [ms]: a 200 x 200 map with 8 layers, from the map to bytes.
+ROS_TARGET_MS = 2.0
+#: The layers of the ROS records (the eight first of the map's layers).
+_ROS_LAYERS = 8
+
+
+def _bench_ros(frames, n, bar):
+    """A 200 x 200 map (8 m at 4 cm) with 8 layers, after one floor frame, to a ROS message's bytes: the export
+    (``to_grid_map``), then the ``grid_map_msgs/GridMap`` (ROS 2 CDR and ROS 1) and ``foxglove_msgs/Grid``."""
+    from ..map.layers import LAYERS
+    from ..ros.convert import grid_map_message, grid_message
+    from ..ros.msgs import serialize
+
+    d, K, T, P = floor_scene(848, 480)
+    emap = ElevationMap(8.0, 0.04, nthreads=n)
+    Mapper(emap, [Camera("d435", K, 848, 480)], nthreads=n).integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=1.0)
+    layers = LAYERS[:_ROS_LAYERS]
+    cells = emap.n * emap.n * len(layers)
+    cases = {"ros_export": lambda: emap.to_grid_map(layers),
+             "ros_gridmap_ros2": lambda: serialize(grid_map_message(emap.to_grid_map(layers), 2), 2),
+             "ros_gridmap_ros1": lambda: serialize(grid_map_message(emap.to_grid_map(layers), 1), 1),
+             "ros_grid": lambda: serialize(grid_message(emap.to_grid_map(layers), 2), 2)}
+    out = []
+    for name, fn in cases.items():
+        ms = _median_ms(fn, frames, 3, bar)
+        extra = {} if name == "ros_export" else {"target_ms": ROS_TARGET_MS, "bytes": len(fn())}
+        out.append(_record(name, emap.n, emap.n, "python" if extra else "numpy", ms, cells, frames, n,
+                           layers=len(layers), **extra))
+    return out
+
+
 _FIRST_FRAME = r"""
 import time
 t0 = time.perf_counter()
@@ -274,7 +305,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
              + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
              + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
              + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1)
-             + ("stereo" in groups) * len(STEREO_TARGET_MS) * min(frames, STEREO_MAX_FRAMES))
+             + ("stereo" in groups) * len(STEREO_TARGET_MS) * min(frames, STEREO_MAX_FRAMES)
+             + ("ros" in groups) * 4 * frames)
     results = []
     with tqdm(total=total, desc="bench", unit="call", disable=not show_progress, leave=False) as bar:
         if "noise" in groups:
@@ -291,6 +323,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
             results += _bench_render(frames, n, bar)
         if "stereo" in groups:
             results += _bench_stereo(frames, n, bar)
+        if "ros" in groups:
+            results += _bench_ros(frames, n, bar)
     return {"results": results, "machine": machine_info(n)}
 
 
@@ -332,9 +366,12 @@ def format_table(report: dict) -> str:
             speed = f"<= {r['target_ms']:.0f}"
         pps = "" if r.get("points_per_s") is None else f"{r['points_per_s'] / 1e6:.2f}"
         lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{r['median_ms']:>11.3f}{pps:>11}{speed:>10}")
-    if any("target_ms" in r for r in rows):
+    if any(r["name"] == "stereo" for r in rows):
         lines.append("stereo: the physical D435, one frame (render, sensor noise, matching); "
                      "last column: its budget [ms]")
+    if any(r["name"].startswith("ros_") for r in rows):
+        lines.append("ros_*: a 200x200 map with 8 layers: the export (to_grid_map), then from the map to the bytes "
+                     "of a GridMap (ROS 2, ROS 1) or foxglove Grid; last column: the budget [ms]")
     m = report["machine"]
     lines.append(f"machine: {m['cpu']}, {m['cores']} cores, {m['threads']} numba threads ({m['threading_layer']}),"
                  f" numba {m['numba']}, numpy {m['numpy']}")

@@ -72,7 +72,8 @@ class FoxgloveServer:
         try:
             self.server = fg.start_server(name="elevmap", host=HOST, port=int(port), context=self.context)
         except Exception as exc:                          # the SDK reports a bind failure as its own error type
-            raise ValueError(f"cannot start the Foxglove server on {HOST}:{port} ({exc}); is the port in use?") from None
+            raise ValueError(f"cannot start the Foxglove server on {HOST}:{port} ({exc}); "
+                             "is the port in use?") from None
         self._fg = fg
         self._channels = {}
         self.map_channel = self._channel(MAP_TOPIC, GRID_MAP)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import functools
 
 __all__ = ["GRID_MAP_ROS1", "GRID_MAP_ROS2", "FOXGLOVE_ROS1", "FOXGLOVE_ROS2", "GRID_MAP_ROS1_MD5",
-           "GRID_MAP", "GRID_MAP_INFO", "GRID", "TF_MESSAGE", "typestore", "message_definition"]
+           "GRID_MAP", "GRID_MAP_INFO", "GRID", "TF_MESSAGE", "typestore", "message_definition", "serialize"]
 
 #: Type names (rosbags spells every type ``pkg/msg/Name``, ROS 1 types too).
 GRID_MAP = "grid_map_msgs/msg/GridMap"
@@ -139,3 +139,11 @@ def message_definition(typename: str, ros_version: int) -> tuple[str, str]:
     ROS 1 hash (meaningful for ``ros_version=1``).
     """
     return typestore(ros_version).generate_msgdef(typename, ros_version=ros_version)
+
+
+def serialize(msg, ros_version: int) -> memoryview:
+    """A message of :func:`typestore` ``(ros_version)`` in ROS 1 wire format or CDR (ROS 2)."""
+    store = typestore(ros_version)
+    if ros_version == 1:
+        return store.serialize_ros1(msg, msg.__msgtype__)
+    return store.serialize_cdr(msg, msg.__msgtype__)

@@ -221,7 +221,8 @@ class RosbagSource(FrameSource):
         depth_units = {}
         self.tf = TfBuffer(tol)
         odometry = {}
-        wanted = None if depth_topics is None else [depth_topics] if isinstance(depth_topics, str) else list(depth_topics)
+        wanted = (None if depth_topics is None else [depth_topics] if isinstance(depth_topics, str)
+                  else list(depth_topics))
         for c in conns:
             if c.msgtype in (IMAGE, COMPRESSED):
                 first = next(_messages(reader, [c], path), None)

@@ -159,7 +159,8 @@ def test_pose_with_covariance_reads_ros_order_and_rejects_bad_covariances():
 def _small_map():
     from elevmap import ElevationMap, FusionParams
 
-    em = ElevationMap(0.4, 0.1, centre_xy=(1.0, -2.0), fusion_params=FusionParams(min_points=1))             # 4 x 4 cells, x 0.8..1.2, y -2.2..-1.8
+    # 4 x 4 cells, x 0.8..1.2, y -2.2..-1.8
+    em = ElevationMap(0.4, 0.1, centre_xy=(1.0, -2.0), fusion_params=FusionParams(min_points=1))
     em.update(np.array([[0.85, -2.15, 0.3], [1.15, -1.85, 0.7], [1.15, -2.15, 0.5]]), np.full(3, 1e-4), stamp=7.25)
     return em
 
