@@ -218,6 +218,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the fitted model (default: <json stem>.model.json beside the report)")
     p.add_argument("--predict", metavar="CAPTURES",
                    help="another capture set whose axial noise the fitted models predict (per depth bin)")
+    p.add_argument("--only", metavar="IDS", help="characterise only these captures (comma-separated ids)")
     p.add_argument("--rrd", metavar="PATH", help="rerun recording of the figures")
     p.add_argument("--figures", metavar="DIR", help="folder for the PNG figures (Fig. 2, 3, 4, lateral noise)")
     p.add_argument("--overwrite", action="store_true", help="replace existing output files")
@@ -599,7 +600,7 @@ def _cmd_characterize(args) -> int:
 
     report = run_characterize(args.captures, json_path=args.json, rrd_path=args.rrd, figures_dir=args.figures,
                               model_path=args.model, overwrite=args.overwrite, show_progress=not args.no_progress,
-                              predict_dir=args.predict)
+                              predict_dir=args.predict, only=args.only)
     print(format_summary(report))
     print(f"wrote {args.json}" + (f" and {args.rrd}" if args.rrd else ""))
     return 0 if report["model"] is not None else 1

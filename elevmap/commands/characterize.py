@@ -31,6 +31,8 @@ import noise_model as nm
 from noise_model.analysis import characterization as ch, family_fit as ff, planes
 from noise_model.d435 import D435
 
+from noise_model.reporting import check_names
+
 from ..fileio import check_outputs, json_ready, write_json_atomic
 from .protocol import PROTOCOL  # the recording protocol (also in ``elevmap characterize --help``)
 
@@ -548,7 +550,7 @@ def _lateral_summary(records, side: str) -> dict:
 
 def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=None, *, model_path=None,
                      overwrite: bool = False, show_progress: bool = True, spawn: bool = False,
-                     predict_dir=None) -> dict:
+                     predict_dir=None, only=None) -> dict:
     """Characterise a camera from a capture set: per-capture noise, the sigma_z fit, sigma_L / sigma_R.
 
     Parameters
@@ -573,6 +575,9 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         Also stream the figures to a rerun viewer.
     predict_dir : path, optional
         Another capture set whose axial noise the fitted models predict (``prediction`` in the report).
+    only : str or sequence of str, optional
+        Characterise only these captures of the set (comma-separated ids): e.g. the wall of a stretch,
+        whose model then predicts the floor with ``predict_dir``.
 
     Returns
     -------
@@ -604,10 +609,14 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
                   inputs=[cs.folder / "captures.json", *(c.path for c in cs.captures)], create_folders=True)
     if not cs.captures:
         raise ValueError(f"{cs.folder}: the capture set holds no captures")
+    selected = cs.captures
+    if only is not None:
+        ids = check_names(only, "--only", allowed=cs.ids, what="capture")
+        selected = [c for c in cs.captures if c.id in ids]
 
     keep_images = rrd_path is not None or figures_dir is not None or spawn
     records, failures = [], []
-    for cap in tqdm(cs.captures, desc="characterize", unit="capture", disable=not show_progress):
+    for cap in tqdm(selected, desc="characterize", unit="capture", disable=not show_progress):
         rec = characterize_capture(cs, cap, keep_image=keep_images)
         if "failed" in rec:
             failures.append({"id": rec["id"], "reason": rec["failed"]})
@@ -619,6 +628,7 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
     report = {
         "format": REPORT_FORMAT,
         "captures_dir": str(cs.folder),
+        "only": None if only is None else [c.id for c in selected],
         "camera": cs.camera,
         "camera_mismatches": list(cs.mismatches),
         "fit": fit_d,
@@ -742,9 +752,10 @@ def _predict(other, model, fit, dfit, camera, show_progress: bool) -> dict:
         for b in bins:
             zp = np.asarray(b["_z_pixels_m"], dtype=np.float64)
             pred = {k: float(np.median(nm.axial_sigma(zp, theta, m, fx_px=fx))) for k, m in models.items()}
+            # a fit extrapolated beyond its data may predict sigma_z <= 0 there: no ratio
             rows.append({"z_range_m": b["z_range_m"], "z_m": b["z_m"], "n_pixels": b["n_pixels"],
                          "real_sigma_m": b["sigma_z_m"], "predicted_sigma_m": pred,
-                         "ratio": {k: b["sigma_z_m"] / v for k, v in pred.items()}})
+                         "ratio": {k: (b["sigma_z_m"] / v if v > 0 else None) for k, v in pred.items()}})
         out["captures"].append({"id": rec["id"], "kind": rec["kind"], "geometry": rec.get("geometry"),
                                 "theta_deg": rec["theta_deg"], "bins": rows})
     return out
@@ -875,7 +886,8 @@ def format_summary(report: dict) -> str:
             for b in c["bins"]:
                 zr = "whole" if b["z_range_m"] is None else f"{b['z_range_m'][0]:.1f}-{b['z_range_m'][1]:.1f}"
                 lines.append(f"  {c['id'][:18]:18s} {zr:11s} {1000 * b['real_sigma_m']:8.2f}  "
-                             + "  ".join(f"{b['ratio'][n]:16.3f}" for n in names))
+                             + "  ".join(f"{b['ratio'][n]:16.3f}" if b["ratio"][n] is not None else
+                                         f"{'sigma <= 0':>16s}" for n in names))
         for f in pred["failures"]:
             lines.append(f"  not measured: {f['id']}: {f['reason']}")
     for side in ("L", "R"):

@@ -128,3 +128,72 @@ def test_characterize_fits_both_families_on_plane_captures_and_predicts_another_
     assert "disparity" in text and "floor70" in text and "geometry fitted" in text
     on_disk = json.loads((tmp_path / "r.json").read_text())
     assert on_disk["family"] == "disparity" and "_z_pixels_m" not in json.dumps(on_disk)
+
+
+# ------------------------------------------------------------------------------------------------
+# the genuine aims_slam recording: a model fitted on the wall predicts the floors
+
+#: The capture ids `elevmap captures` gives the aims_slam stretches (ordered by mask size; checked below
+#: by the planes' normals): the white wall and the concrete floor of frames 141-156, the floor of frames 1-8.
+AIMS_WALL, AIMS_FLOORS = "f141-156_plane1", ("f141-156_plane2", "f1-8_plane1")
+#: The floor's depth bins the prediction is judged on [m].
+AIMS_BINS_M = (0.6, 1.9)
+
+
+_AIMS = {}
+
+
+@pytest.fixture
+def aims_prediction(realdata, tmp_path_factory):
+    """``elevmap captures DEPTH --frames 141-156,1-8`` then ``elevmap characterize SET --only WALL --predict SET``,
+    the two commands docs/noise-model.md gives for this figure (run once for the tests that read it)."""
+    if "result" not in _AIMS:
+        _AIMS["result"] = _run_aims(realdata, tmp_path_factory.mktemp("aims"))
+    return _AIMS["result"]
+
+
+def _run_aims(realdata, out):
+    from elevmap.cli import main
+
+    assert main(["captures", str(realdata / "aims_slam_d435_robot_floor" / "depth"), "--frames", "141-156,1-8",
+                 "--out", str(out / "set"), "--intrinsics", "383.8,383.8,321.7,238.2"]) == 0
+    assert main(["characterize", str(out / "set"), "--only", AIMS_WALL, "--json", str(out / "wall.json"),
+                 "--predict", str(out / "set"), "--no-progress"]) == 0
+    report = json.loads((out / "wall.json").read_text())
+    rows = {}
+    for c in report["prediction"]["captures"]:
+        rows[c["id"]] = [b for b in c["bins"] if b["z_range_m"][0] >= AIMS_BINS_M[0] - 1e-9
+                         and b["z_range_m"][1] <= AIMS_BINS_M[1] + 1e-9]
+    return report, rows, out
+
+
+def test_aims_slam_wall_model_predicts_both_floors_within_a_factor_of_two(aims_prediction):
+    """The wall of frames 141-156 alone (one incidence angle, so s1 is fixed at 0) gives sigma_d between 0.07
+    and 0.09 px; over the floors' depth bins 0.6-1.9 m its sigma_z is within a factor of two of the measured
+    one, and never below it, where the paper's published model states 33 or more times the measured sigma."""
+    report, rows, out = aims_prediction
+    caps = {c["id"]: c for c in report["prediction"]["captures"]}
+    assert abs(caps[AIMS_WALL]["theta_deg"] - 27.3) < 2.0                 # figures.json: the wall's plane
+    assert all(abs(caps[f]["theta_deg"] - 70.5) < 2.0 for f in AIMS_FLOORS)
+    assert report["family"] == "disparity" and report["only"] == [AIMS_WALL]
+    d = report["fit_disparity"]
+    assert 0.07 < d["s0_px"] < 0.09 and d["s1_px_per_rad2"] == 0.0 and "fixed at 0" in d["s1_fixed"]
+    assert report["skipped_statistics"][0]["id"] == AIMS_WALL               # fitted geometry: no bias or scale
+    model = nm.SensorModel.load(out / "wall.model.json")
+    assert model.family == "disparity" and model.s0 == pytest.approx(d["s0_px"])
+    for f in AIMS_FLOORS:
+        assert len(rows[f]) == 13
+        for b in rows[f]:
+            assert 0.5 <= b["ratio"]["model"] <= 1.0, (f, b["z_range_m"], b["ratio"])
+            assert b["ratio"]["paper_published"] < 1 / 33, (f, b["z_range_m"], b["ratio"])
+
+
+@pytest.mark.xfail(strict=True, reason="the white wall's disparity noise is larger than the concrete floor's at the same "
+                                       "depth, which no sigma_d(theta) fitted on the wall alone can know (docs/"
+                                       "noise-model.md, the disparity family on a real D435)")
+def test_aims_slam_wall_model_predicts_the_floors_within_25_percent(aims_prediction):
+    """The target: median measured / median predicted sigma_z within [0.8, 1.25] in every floor depth bin."""
+    _, rows, _ = aims_prediction
+    for f in AIMS_FLOORS:
+        for b in rows[f]:
+            assert 0.8 <= b["ratio"]["model"] <= 1.25, (f, b["z_range_m"], b["ratio"]["model"])
