@@ -37,9 +37,13 @@ census-plus-box-aggregation of the R200 that the D400 keeps under its semi-globa
 et al. 2017, arXiv 1705.05548, describe 7 x 7 boxes on the R200; the matcher's default is the census
 window's 9 x 9, which brings the static, dot-layout-dependent part of the subpixel error down to the
 D435's measured plane-fit scatter, see docs/physical-d435.md). The mean is taken over the window's
-pixels inside the image whose right pixel exists (x' - d >= 0), rounded to the nearest integer; where
-there is none the cost is :data:`COST_MAX` (the matcher never selects such a disparity). Averaging
-only existing costs keeps the left invalid band at f B / z instead of widening it by the box radius.
+pixels inside the image, rounded to the nearest integer; a window pixel whose right pixel does not
+exist (x' - d < 0) counts as :data:`COST_MAX`, and where the centre's own right pixel does not exist
+the cost is :data:`COST_MAX` (the matcher never selects such a disparity). The rule is a fixed
+window whose right pixels must all exist, as a hardware window that cannot reach beyond the right
+image; it widens the left invalid band from ceil(f B / z) by about the box radius, which is where the
+D435's own depth picture of a real infrared pair puts its band (docs/physical-d435.md; averaging only
+the existing costs instead leaves the band 2-4 px narrower than the D435's at 424 x 240).
 The mean keeps the 0..2046 scale, so the SGM penalties stay on the scale of one pixel's cost. Without
 it the cost curve of a single pixel is too coarse (integer Hamming steps) for a 1/32-px subpixel fit.
 """
@@ -255,7 +259,7 @@ def _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y, raw, o
             xr = x - d
             raw[x, d] = lut_c[popcount64(a ^ lr[xr]) + popcount64(b ^ hr[xr])] + lut_a[abs(c - ir[xr])]
         for d in range(dmax + 1, n_disp):
-            raw[x, d] = 0                                  # no right pixel: left out of the mean
+            raw[x, d] = COST_MAX                           # no right pixel: the worst cost
     for d in range(n_disp):
         out[0, d] = 0
     for x in range(min(box + 1, w)):
@@ -299,12 +303,11 @@ def _cost_kernel(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, magic,
             for x in range(w):
                 x_lo = max(0, x - box)
                 x_hi = min(w - 1, x + box)
+                n = ny * (x_hi - x_lo + 1)
                 for d in range(n_disp):
-                    nx = x_hi - max(x_lo, d) + 1           # window columns whose right pixel exists
-                    if nx <= 0:
+                    if d > x:                              # the centre's right pixel does not exist
                         out[y, x, d] = COST_MAX
                     else:
-                        n = ny * nx
                         out[y, x, d] = ((acc[x, d] + (n >> 1)) * magic[n]) >> 32
 
 
@@ -365,8 +368,9 @@ def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: fl
     Returns
     -------
     ndarray, shape (H, W, n_disp), uint16
-        Cost in 0..:data:`COST_MAX`: the mean over the window's existing per-pixel costs
-        (x' - d >= 0); :data:`COST_MAX` where the window has none.
+        Cost in 0..:data:`COST_MAX`: the mean over the window's per-pixel costs, missing right
+        pixels (x' - d < 0) counted as :data:`COST_MAX`; :data:`COST_MAX` where the centre's right
+        pixel is missing.
     """
     L, R = _check_pair(left10, right10)
     b = _check_box(box_radius)
@@ -395,7 +399,7 @@ def cost_volume_reference(left10, right10, n_disp: int, radius: int = 4, lambda_
     lo_l, hi_l = census_transform_reference(L, radius)
     lo_r, hi_r = census_transform_reference(R, radius)
     h, w = L.shape
-    raw = np.zeros((h, w, int(n_disp)), np.int64)
+    raw = np.full((h, w, int(n_disp)), COST_MAX, np.int64)           # no right pixel: the worst cost
     for d in range(min(int(n_disp), w)):
         ham = (np.bitwise_count(lo_l[:, d:] ^ lo_r[:, :w - d]).astype(np.int64)
                + np.bitwise_count(hi_l[:, d:] ^ hi_r[:, :w - d]))
@@ -411,7 +415,6 @@ def cost_volume_reference(left10, right10, n_disp: int, radius: int = 4, lambda_
     y_lo, y_hi = np.maximum(0, y - b), np.minimum(h - 1, y + b)
     total = cs[y_hi + 1] - cs[y_lo]
     d = np.arange(int(n_disp))
-    nx = x_hi[:, None] - np.maximum(x_lo[:, None], d[None, :]) + 1          # (W, D)
-    count = (y_hi - y_lo + 1)[:, None, None] * nx[None, :, :]
-    safe = np.maximum(count, 1)
-    return np.where(count > 0, (total + safe // 2) // safe, COST_MAX).astype(np.uint16)
+    count = ((y_hi - y_lo + 1)[:, None] * (x_hi - x_lo + 1)[None, :])[:, :, None]
+    centre_missing = (d[None, :] > x[:, None])[None, :, :]                 # (1, W, D)
+    return np.where(centre_missing, COST_MAX, (total + count // 2) // count).astype(np.uint16)

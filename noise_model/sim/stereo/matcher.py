@@ -15,10 +15,16 @@ Stages (one rectified 10-bit pair in, one disparity map out)
    read as a margin in units of 1/1024 of S1 (this module's interpretation).
 4. Texture: the census window's texture measure (:func:`.census.texture_measure`) must reach
    ``texture_difference`` (``textureDifferenceThreshold``; 0 in the default preset = off).
-5. Subpixel: with c0, c1, c2 the costs at d1 - 1, d1, d1 + 1, the offset is the parabola vertex
-   ``(c0 - c2) / (2 (c0 - 2 c1 + c2))`` or the equiangular (V-shaped) fit
-   ``(c0 - c2) / (2 (max(c0, c2) - c1))``, clipped to [-0.5, 0.5]; the disparity is rounded to
-   1/2^5 = 1/32 px (the D4's 5 fractional bits).
+5. Subpixel: with c0, c1, c2 the costs at d1 - 1, d1, d1 + 1, the offset t is where a cost curve of
+   the shape a |d - t|^p + b through the three costs has its minimum. With the lower neighbour's and
+   the higher neighbour's excess costs e_near <= e_far over c1, rho = e_near / e_far solves
+   rho = ((1 - |t|)^p - |t|^p) / ((1 + |t|)^p - |t|^p), |t| <= 1/2, towards the lower neighbour.
+   p = 1 is the equiangular (V-shaped) fit ``(c0 - c2) / (2 (max(c0, c2) - c1))``, p = 2 the parabola
+   vertex ``(c0 - c2) / (2 (c0 - 2 c1 + c2))``; other exponents go through a 1025-entry table of t
+   over rho (:func:`subpixel_table`). A fit whose shape does not match the cost curve's pulls the
+   disparity towards whole pixels (pixel locking): the aggregated census cost is sharper than a V
+   near its minimum, so the default exponent is below 1 (docs/physical-d435.md). The disparity is
+   rounded to 1/2^5 = 1/32 px (the D4's 5 fractional bits).
 6. Left-right check: the right image's disparity d_R(x_r) = argmin_d S(x_r + d, d) (same subpixel
    rule) must agree with the left one at x_r = x - round(d_L): ``|d_L - d_R| <= lr_threshold / 32``
    (``lrAgreeThreshold`` read in 1/32 px).
@@ -53,8 +59,11 @@ __all__ = [
     "MatcherParams", "PRESETS", "D435_DEPTH_SIZES", "MatchResult", "VALID", "NO_MINIMUM", "SECOND_PEAK",
     "LOW_TEXTURE", "LEFT_RIGHT", "SMALL_SEGMENT", "match", "match_reference", "winner_take_all",
     "winner_take_all_reference", "remove_small_segments", "remove_small_segments_reference",
-    "disparity_to_depth", "preset",
+    "disparity_to_depth", "preset", "subpixel_table", "SUBPIXEL_EXPONENT",
 ]
+
+#: Exponent of the power-law subpixel fit (stage 5 of the module docstring).
+SUBPIXEL_EXPONENT = 0.5
 
 #: Depth-stream sizes (width, height) of the D435 that the presets cover.
 D435_DEPTH_SIZES = ((1280, 720), (848, 480), (640, 480), (640, 360), (480, 270), (424, 240))
@@ -62,8 +71,9 @@ D435_DEPTH_SIZES = ((1280, 720), (848, 480), (640, 480), (640, 360), (480, 270),
 # reasons a pixel is invalid (the ``reason`` image of a MatchResult)
 VALID, NO_MINIMUM, SECOND_PEAK, LOW_TEXTURE, LEFT_RIGHT, SMALL_SEGMENT = 0, 1, 2, 3, 4, 5
 
-_PARABOLA, _EQUIANGULAR = 0, 1
-_SUBPIXEL_MODES = {"parabola": _PARABOLA, "equiangular": _EQUIANGULAR}
+_PARABOLA, _EQUIANGULAR, _POWER = 0, 1, 2
+_SUBPIXEL_MODES = {"parabola": _PARABOLA, "equiangular": _EQUIANGULAR, "power": _POWER}
+_TABLE_SIZE = 1025
 
 
 @dataclass(frozen=True)
@@ -94,7 +104,10 @@ class MatcherParams:
     rsm_remove : int
         Segments with fewer pixels are removed (``rsm.removeThresh``); 0 = off.
     subpixel : str
-        "equiangular" or "parabola".
+        "power" (the fit of exponent ``subpixel_exponent``), "equiangular" (exponent 1) or "parabola"
+        (exponent 2); module docstring, stage 5.
+    subpixel_exponent : float
+        Exponent p of the cost-curve shape of the "power" fit, > 0.
     fractional_bits : int
         Disparity is rounded to 1 / 2^fractional_bits px (5 on the D4).
     sizes : tuple of (width, height), or None
@@ -113,7 +126,8 @@ class MatcherParams:
     texture_difference: int = 0
     rsm_diff: float = 4.0
     rsm_remove: int = 63
-    subpixel: str = "equiangular"
+    subpixel: str = "power"
+    subpixel_exponent: float = SUBPIXEL_EXPONENT
     fractional_bits: int = 5
     sizes: tuple | None = D435_DEPTH_SIZES
 
@@ -121,6 +135,8 @@ class MatcherParams:
         check_penalties(self.p1, self.p2)
         if self.subpixel not in _SUBPIXEL_MODES:
             raise ValueError(f"subpixel must be one of {sorted(_SUBPIXEL_MODES)}, got {self.subpixel!r}")
+        if not (np.isfinite(self.subpixel_exponent) and 0.0 < self.subpixel_exponent <= 4.0):
+            raise ValueError(f"subpixel_exponent must be in (0, 4], got {self.subpixel_exponent!r}")
         if int(self.box_radius) < 0:
             raise ValueError(f"box_radius must be >= 0, got {self.box_radius!r}")
         for name in ("n_disp", "census_radius"):
@@ -178,19 +194,42 @@ class MatchResult(NamedTuple):
 # ---------------------------------------------------------------------------------------------
 
 
+def subpixel_table(exponent: float, size: int = _TABLE_SIZE) -> np.ndarray:
+    """Offsets |t| [px] of the power-law fit at rho = k / (size - 1), k = 0 .. size - 1 (stage 5).
+
+    rho(t) = ((1 - t)^p - t^p) / ((1 + t)^p - t^p) falls from 1 at t = 0 to 0 at t = 1/2; the table
+    inverts it on a fine grid of t by linear interpolation.
+    """
+    p = float(exponent)
+    if not (np.isfinite(p) and p > 0.0):
+        raise ValueError(f"subpixel exponent must be > 0, got {exponent!r}")
+    t = np.linspace(0.0, 0.5, 20001)
+    rho = ((1.0 - t) ** p - t ** p) / ((1.0 + t) ** p - t ** p)
+    return np.interp(np.linspace(0.0, 1.0, int(size)), rho[::-1], t[::-1])
+
+
 @njit(**JIT)
-def _subpixel(c0, c1, c2, mode):
+def _subpixel(c0, c1, c2, mode, table):
     if mode == _PARABOLA:
         den = c0 - 2.0 * c1 + c2
         off = (c0 - c2) / (2.0 * den) if den > 0.0 else 0.0
-    else:
+    elif mode == _EQUIANGULAR:
         den = max(c0, c2) - c1
         off = (c0 - c2) / (2.0 * den) if den > 0.0 else 0.0
+    else:
+        far = max(c0, c2) - c1
+        if far > 0.0:
+            u = (min(c0, c2) - c1) / far * (table.size - 1)
+            k = min(int(u), table.size - 2)
+            t = table[k] + (u - k) * (table[k + 1] - table[k])
+            off = t if c0 > c2 else -t
+        else:
+            off = 0.0
     return min(0.5, max(-0.5, off))
 
 
 @njit(parallel=True, **JIT)
-def _wta_kernel(S, texture, second_peak, texture_min, lr_max, mode, scale, disp, reason):
+def _wta_kernel(S, texture, second_peak, texture_min, lr_max, mode, table, scale, disp, reason):
     h, w, n_disp = S.shape
     for y in prange(h):
         dl = np.full(w, -1.0)
@@ -219,7 +258,7 @@ def _wta_kernel(S, texture, second_peak, texture_min, lr_max, mode, scale, disp,
             if texture[y, x] < texture_min:
                 reason[y, x] = 3
                 continue
-            off = _subpixel(float(S[y, x, best - 1]), float(s1), float(S[y, x, best + 1]), mode)
+            off = _subpixel(float(S[y, x, best - 1]), float(s1), float(S[y, x, best + 1]), mode, table)
             dl[x] = np.floor((best + off) * scale + 0.5) / scale
         for xr in range(w):
             dmax = min(n_disp - 1, w - 1 - xr)
@@ -233,7 +272,7 @@ def _wta_kernel(S, texture, second_peak, texture_min, lr_max, mode, scale, disp,
             if best < 1 or best > dmax - 1:
                 continue
             off = _subpixel(float(S[y, xr + best - 1, best - 1]), float(s1), float(S[y, xr + best + 1, best + 1]),
-                            mode)
+                            mode, table)
             dr[xr] = np.floor((best + off) * scale + 0.5) / scale
         for x in range(w):
             if dl[x] < 0.0:
@@ -263,12 +302,21 @@ def winner_take_all(S, texture, params: MatcherParams, nthreads: int | None = No
     with threads(resolve_threads(nthreads)):
         _wta_kernel(S, np.ascontiguousarray(texture, dtype=np.int32), int(params.second_peak),
                     int(params.texture_difference), float(lr_max), _SUBPIXEL_MODES[params.subpixel],
-                    float(2 ** params.fractional_bits), disp, reason)
+                    subpixel_table(params.subpixel_exponent), float(2 ** params.fractional_bits), disp, reason)
     return MatchResult(disp, reason)
 
 
-def _subpixel_np(c0, c1, c2, mode):
+def _subpixel_np(c0, c1, c2, mode, exponent=1.0):
     c0, c1, c2 = (np.asarray(c, dtype=np.float64) for c in (c0, c1, c2))
+    if mode == _POWER:
+        table = subpixel_table(exponent)
+        far = np.maximum(c0, c2) - c1
+        rho = np.where(far > 0.0, (np.minimum(c0, c2) - c1) / np.where(far > 0.0, far, 1.0), 0.0)
+        u = np.clip(rho, 0.0, 1.0) * (table.size - 1)             # outside [0, 1] only where c1 is no minimum
+        k = np.minimum(u.astype(np.int64), table.size - 2)
+        t = table[k] + (u - k) * (table[k + 1] - table[k])
+        off = np.where(far > 0.0, np.where(c0 > c2, t, -t), 0.0)
+        return np.clip(off, -0.5, 0.5)
     den = c0 - 2.0 * c1 + c2 if mode == _PARABOLA else np.maximum(c0, c2) - c1
     with np.errstate(divide="ignore", invalid="ignore"):
         off = np.where(den > 0.0, (c0 - c2) / (2.0 * np.where(den > 0.0, den, 1.0)), 0.0)
@@ -298,7 +346,7 @@ def winner_take_all_reference(S, texture, params: MatcherParams) -> MatchResult:
     bp = np.clip(best + 1, 0, n_disp - 1)
     c0 = np.take_along_axis(S, bm[..., None], axis=2)[..., 0]
     c2 = np.take_along_axis(S, bp[..., None], axis=2)[..., 0]
-    dl = np.floor((best + _subpixel_np(c0, s1, c2, mode)) * scale + 0.5) / scale
+    dl = np.floor((best + _subpixel_np(c0, s1, c2, mode, params.subpixel_exponent)) * scale + 0.5) / scale
     reason[tex_fail] = LOW_TEXTURE
     reason[uniq_fail] = SECOND_PEAK
     reason[no_min] = NO_MINIMUM
@@ -316,7 +364,8 @@ def winner_take_all_reference(S, texture, params: MatcherParams) -> MatchResult:
     rows = np.arange(h)[:, None]
     cm = S[rows, np.clip(xr_idx + br - 1, 0, w - 1), np.clip(br - 1, 0, n_disp - 1)]
     cp = S[rows, np.clip(xr_idx + br + 1, 0, w - 1), np.clip(br + 1, 0, n_disp - 1)]
-    dr = np.where(ok_r, np.floor((br + _subpixel_np(cm, sr1, cp, mode)) * scale + 0.5) / scale, -1.0)
+    dr = np.where(ok_r, np.floor((br + _subpixel_np(cm, sr1, cp, mode, params.subpixel_exponent)) * scale + 0.5)
+                  / scale, -1.0)
     valid = dl >= 0.0
     if params.lr_threshold >= 0:
         xr = x_idx[None, :] - np.floor(dl + 0.5).astype(np.int64)

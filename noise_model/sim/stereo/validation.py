@@ -5,7 +5,8 @@ runs it):
 
 1. :func:`wall_sweep` -- a fronto-parallel wall lit only by the projector, 0.5-3 m at 848 x 480: the
    temporal sigma of depth and the subpixel sigma it implies, sigma_d = sigma_z f B / z^2 (target
-   0.05-0.12 px, Intel's typical 0.08), the left invalid band against f B / z (+- 3 px), the nearest
+   0.05-0.12 px, Intel's typical 0.08), the left invalid band against its width in whole columns,
+   ceil(f B / z) (+- 3 px; the columns x < f B / z have no right pixel at the true disparity), the nearest
    depth against f B / 126, the fill rate.
 2. The aims_slam stretch (:func:`.realdata.aims_stretch`): per-pixel temporal sigma per depth bin of
    its wall and its floor (+- 35 %), the whole-plane frame-to-frame jitter next to the real one (and
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -93,7 +95,7 @@ def wall_sweep(distances=(0.5, 1.0, 1.5, 2.0, 2.5, 3.0), n_frames: int = 10, wid
             "spatial_sigma_d_px": float(np.std(disp0)),
             "mean_error_mm": float(np.mean(D[:, every]) - z) * 1e3 if every.any() else float("nan"),
             "band_px": float(np.median(np.argmax(valid0, axis=1))),
-            "band_expected_px": fB / z,
+            "band_expected_px": float(math.ceil(fB / z)),     # whole columns x < f B / z have no match
             "nearest_m": float(D[D > 0].min()),
             "nearest_allowed_m": fB / 126.0,
         })
@@ -141,7 +143,7 @@ def _section_wall(out, n_frames, say):
     out["wall_848x480"] = rows = wall_sweep(n_frames=n_frames)
     lo, hi = TARGET_SIGMA_D_PX
     say(f"1. Fronto-parallel wall lit only by the projector, 848x480, {n_frames} frames per distance")
-    say(f"   z [m]  temporal sigma_z   sigma_d [{lo}-{hi} px]   single-frame sigma_d   left band [f B / z +- "
+    say(f"   z [m]  temporal sigma_z   sigma_d [{lo}-{hi} px]   single-frame sigma_d   left band [ceil(f B / z) +- "
         f"{TARGET_BAND_PX:.0f} px]   nearest [>= f B / 126]   valid   exposure")
     for r in rows:
         band_ok = abs(r["band_px"] - r["band_expected_px"]) <= TARGET_BAND_PX

@@ -167,14 +167,14 @@ def test_static_part_recovers_a_known_static_share(rng):
 
 
 def test_capture_statistics_of_a_simulated_wall():
-    geoms = E.design(walls=[(1.0, 0)], boards=())
+    geoms = E.design(walls=[(1.5, 0)], boards=())
     data = E.simulate(geoms, n_frames=4, seed=3)
     again = E.simulate(geoms, n_frames=4, seed=3)
     np.testing.assert_array_equal(data[0].depth_m, again[0].depth_m)          # seeded
     (row,) = E.capture_statistics(data)
-    assert row["id"] == "wall_z1.00_y00" and row["frames"] == 4
+    assert row["id"] == "wall_z1.50_y00" and row["frames"] == 4
     assert row["fill_rate"] > 0.95
-    assert 0.8 < row["lattice"] <= 1.0                              # the 1/32-px lattice at 1 m
+    assert 0.8 < row["lattice"] <= 1.0            # the 1/32-px lattice: one step is 3.3 mm at 1.5 m, 3 depth units
     assert 0.02 < row["temporal_sigma_d_px"] < 0.1
     assert 1.0 < row["corr_length_px"] < 5.0                         # correlated over the matching window
 
