@@ -75,6 +75,10 @@ MIN_PLANE_FRACTION = 0.05
 #: (n_sigma = 4) or less, gives 0.17 or less; 0.3 lies between.
 MAX_SPREAD = 0.3
 
+#: Distance [px] within which a pixel in the bands of two planes is taken as seeing where they meet
+#: (:func:`find_planes`, step 6): about the half-width of a stereo matching window at VGA-like sizes.
+MEET_PX = 4
+
 #: Pixels :func:`find_planes` gives RANSAC at most (a regular subsample of the image).
 RANSAC_SAMPLE_PX = 20000
 
@@ -627,6 +631,39 @@ def _clean_mask(mask: np.ndarray, min_component_px: int) -> np.ndarray:
     return keep[lab]
 
 
+def _settle_meeting_pixels(found: list[MaskedPlane], mean, up, vp, unit: float, min_component: int) -> list:
+    """The masks with the pixels where planes meet settled (:func:`find_planes`, step 6).
+
+    A pixel of some mask whose mean lies within the bands of several planes is ambiguous. It goes to the
+    plane whose unambiguous pixels are nearest in the image (the side of the line where the surfaces
+    meet that it lies on), and leaves every mask when another of those planes has pixels (after this
+    assignment) within :data:`MEET_PX`. The masks are then cleaned again.
+    """
+    from scipy import ndimage
+
+    if len(found) < 2:
+        return [mp.mask for mp in found]
+    bands = []
+    for mp in found:
+        zp = mp.plane.depth_at(up, vp)
+        with np.errstate(invalid="ignore"):
+            bands.append(np.abs(mean - zp) <= np.maximum(mp.threshold_m(zp), 2.0 * unit))
+    bands = np.stack(bands)
+    taken = np.zeros(mean.shape, dtype=bool)
+    for mp in found:
+        taken |= mp.mask
+    in_bands = bands & taken[None]
+    ambiguous = in_bands.sum(axis=0) >= 2
+    # the side: the plane (whose band holds the pixel) with the nearest unambiguous pixels [px]
+    dist = np.stack([ndimage.distance_transform_edt(~(mp.mask & ~ambiguous)) for mp in found])
+    owner = np.argmin(np.where(in_bands, dist, np.inf), axis=0)
+    sides = [np.where(ambiguous, owner == k, mp.mask) for k, mp in enumerate(found)]
+    # the meeting: another plane whose band holds the pixel has pixels within MEET_PX of it
+    near = np.stack([ndimage.distance_transform_edt(~side) <= MEET_PX for side in sides])
+    meets = (in_bands & near & (np.arange(len(found))[:, None, None] != owner[None])).any(axis=0)
+    return [_clean_mask(side & ~(ambiguous & meets), min_component) for side in sides]
+
+
 def find_planes(depth_m, K, *, max_planes: int = 4, min_plane_fraction: float = MIN_PLANE_FRACTION,
                 n_sigma: float = MASK_N_SIGMA, max_spread: float = MAX_SPREAD, min_valid_fraction: float = 0.5, depth_unit_m: float = 0.001,
                 inlier_rel: float = INLIER_REL, iterations: int = 300, seed: int = 0) -> list[MaskedPlane]:
@@ -651,8 +688,12 @@ def find_planes(depth_m, K, *, max_planes: int = 4, min_plane_fraction: float = 
        concentrated near it (``spread`` at most ``max_spread``), is kept. Its RANSAC consensus and mask
        leave the pool either way; repeat from 2 until ``max_planes`` planes are kept or no consensus is
        large enough.
-    6. Pixels within the bands of two kept planes (along the line where they meet) leave both masks:
-       their mean cannot tell the surfaces apart, and there the camera's matching window sees both.
+    6. Where planes meet: a mask pixel whose mean lies within the bands of several kept planes goes to
+       the one whose unambiguous pixels are nearest (the side of the meeting line it lies on), and leaves
+       every mask when another such plane's unambiguous pixels lie within :data:`MEET_PX`: there the
+       mean cannot tell the surfaces apart and the camera's matching window sees both. Where one plane's
+       band crosses the other far from its pixels (a wall's plane continued across the floor beside the
+       wall) only one surface is there, and the pixels stay. The masks are cleaned again.
 
     Parameters
     ----------
@@ -752,21 +793,9 @@ def find_planes(depth_m, K, *, max_planes: int = 4, min_plane_fraction: float = 
         if spread <= spread_max:
             found.append(MaskedPlane(plane, mask, kz, ns, rel, float(np.sqrt(np.mean(r * r))), _mad_sigma(r),
                                      spread, int(support.sum())))
-    # pixels within the band of two planes (along the line where they meet) belong to neither: their mean
-    # cannot tell the surfaces apart, and there the camera's matching window sees both
-    bands = []
-    for mp in found:
-        zp = mp.plane.depth_at(up, vp)
-        with np.errstate(invalid="ignore"):
-            bands.append(np.abs(mean - zp) <= np.maximum(np.minimum(ns * mp.temporal_k_per_m * zp, rel) * zp,
-                                                         2.0 * unit))
+    masks = _settle_meeting_pixels(found, mean, up, vp, unit, min_component)
     out = []
-    for i, mp in enumerate(found):
-        others = np.zeros_like(pool)
-        for j, b in enumerate(bands):
-            if j != i:
-                others |= b
-        mask = mp.mask & ~others
+    for mp, mask in zip(found, masks):
         if mask.sum() < min_px:
             continue
         zp = mp.plane.depth_at(up, vp)[mask]
