@@ -13,7 +13,6 @@ import pytest
 import noise_model as nm
 from elevmap.commands.characterize import format_summary, run_characterize
 from elevmap.sources.captures import write_capture_set
-from noise_model.analysis import family_fit as ff
 
 W, H, F = 160, 120, 100.0
 CAMERA = {"model": "D435", "width": W, "height": H, "fx": F, "fy": F, "ppx": (W - 1) / 2, "ppy": (H - 1) / 2,
@@ -62,41 +61,6 @@ FIT_PLANES = {
     "wall45": ((-math.sin(math.radians(45)), 0.0, -math.cos(math.radians(45))), 1.6, None),
     "floor65": ((0.0, -math.sin(math.radians(65)), -math.cos(math.radians(65))), 0.6, (62, 120)),
 }
-
-
-def test_disparity_fit_recovers_sigma_d_and_fixes_s1_at_one_angle():
-    rng = np.random.default_rng(0)
-    z = rng.uniform(0.5, 2.5, 40)
-    t = rng.choice(np.radians([10.0, 35.0, 60.0]), 40)
-    s = TRUE.with_focal(383.8)
-    sig = nm.axial_sigma(z, t, s) * np.exp(0.03 * rng.standard_normal(40))
-    fit = ff.fit_disparity_model(z, t, sig, 383.8, 0.05)
-    assert fit.s0 == pytest.approx(0.06, rel=0.05) and fit.s1 == pytest.approx(0.05, rel=0.15)
-    assert fit.s1_fixed is None and np.all(np.isfinite(fit.stderr))
-    np.testing.assert_allclose(fit.sigma_z(z, t, 383.8), nm.axial_sigma(z, t, nm.D435.with_disparity(
-        fit.s0, fit.s1), fx_px=383.8), rtol=1e-12)
-    one = ff.fit_disparity_model(z, np.full(40, 0.4), sig, 383.8, 0.05)
-    assert one.s1 == 0.0 and "fixed at 0" in one.s1_fixed
-    # sigma_d shrinking with the angle: s1 stays at its bound 0
-    shrink = ff.fit_disparity_model(z, t, 0.1 * z * z / (383.8 * 0.05) * (1.0 - 0.3 * t), 383.8, 0.05)
-    assert shrink.s1 == 0.0
-    with pytest.raises(ValueError, match="theta_rad"):
-        ff.fit_disparity_model(z, np.degrees(t), sig, 383.8, 0.05)
-    with pytest.raises(ValueError, match="fx_px"):
-        ff.fit_disparity_model(z, t, sig, -1.0, 0.05)
-
-
-def test_heldout_blocks_prefer_the_family_the_data_came_from():
-    rng = np.random.default_rng(1)
-    zz, tt = np.meshgrid(np.arange(0.5, 2.6, 0.25), np.radians(np.arange(0.0, 76.0, 15.0)), indexing="ij")
-    z, t = zz.ravel(), tt.ravel()
-    noise = np.exp(0.05 * rng.standard_normal(z.size))
-    disp = ff.heldout_errors(z, t, nm.axial_sigma(z, t, TRUE, fx_px=424.0) * noise, 424.0, 0.05)
-    assert disp["better"] == "disparity" and disp["families"]["disparity"]["rms_log_error_common"] < 0.1
-    paper = ff.heldout_errors(z, t, nm.axial_sigma(z, t) * noise, 424.0, 0.05)
-    assert paper["better"] == "paper"
-    labels, names = ff.distance_angle_blocks(z, t)
-    assert len(names) == labels.max() + 1 == len(disp["blocks"])
 
 
 def test_characterize_fits_both_families_on_plane_captures_and_predicts_another_set(tmp_path):
