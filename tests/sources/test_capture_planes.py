@@ -171,3 +171,16 @@ def test_masks_of_any_png_kind_and_bad_mask_arrays(tmp_path, rng):
     cv2.imwrite(str(path), mask.astype(np.uint8))
     cs2 = write_capture_set(tmp_path / "a", CAMERA, [(ref, depth)], overwrite=True)
     np.testing.assert_array_equal(cs2.load_mask("floor_s1"), mask)
+
+
+def test_a_mask_written_for_a_depth_file_already_in_the_folder(tmp_path, rng):
+    """A recording referenced (depth None) gets its mask written beside it; its frames are not touched."""
+    entry, depth, mask = _floor_capture(rng)
+    tmp_path.mkdir(exist_ok=True)
+    np.save(tmp_path / "rec.npy", depth)
+    before = (tmp_path / "rec.npy").read_bytes()
+    cs = write_capture_set(tmp_path, CAMERA, [({**entry, "depth": "rec.npy"}, None, mask)])
+    assert (tmp_path / "rec.npy").read_bytes() == before
+    np.testing.assert_array_equal(cs.load_mask("floor_s1"), mask)
+    np.testing.assert_array_equal(cs.load_depth("floor_s1"), depth)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["captures.json", "floor_s1_mask.png", "rec.npy"]
