@@ -55,8 +55,12 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 TF = "tf2_msgs/msg/TFMessage"
 ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_COV = "geometry_msgs/msg/PoseWithCovarianceStamped"
-#: The RealSense SDK records its depth sensor's metres per unit under ``<sensor>/option/Depth Units/value``.
-_REALSENSE_DEPTH_UNITS = "/option/Depth Units/value"
+#: The RealSense SDK records its depth sensor's metres per unit under ``<sensor>/option/Depth Units/value``
+#: (a Float32 in its ROS 1 .bag, a String under ``Depth_Units`` in its ROS 2 .db3).
+_REALSENSE_DEPTH_UNITS = ("/option/Depth Units/value", "/option/Depth_Units/value")
+#: The RealSense SDK's .db3 stamps images with the recording time and keeps the sensor's timestamp [ms] in a
+#: String beside them, ``<stream>/image/metadata``: ``"...;timestamp=66.666667;..."``.
+_REALSENSE_METADATA = "/metadata"
 
 
 def is_ros_bag(path) -> bool:
@@ -217,6 +221,7 @@ class RosbagSource(FrameSource):
         conns = reader.connections
         self.all_topics = {c.topic: c.msgtype for c in conns}
         self.topics = {}
+        self._sensor_stamps = {}
         infos = {}
         depth_units = {}
         self.tf = TfBuffer(tol)
@@ -254,10 +259,25 @@ class RosbagSource(FrameSource):
                 first = next(_messages(reader, [c], path), None)
                 if first is not None:
                     infos[c.topic] = first[2]
-            elif c.msgtype == "std_msgs/msg/Float32" and c.topic.endswith(_REALSENSE_DEPTH_UNITS):
+            elif c.topic.endswith(_REALSENSE_DEPTH_UNITS) and c.msgtype in ("std_msgs/msg/Float32",
+                                                                            "std_msgs/msg/String"):
                 first = next(_messages(reader, [c], path), None)
-                if first is not None:
-                    depth_units[c.topic[: -len(_REALSENSE_DEPTH_UNITS)]] = float(first[2].data)
+                try:
+                    # a float32 option in the SDK (its .db3 writes it as text with 6 decimals)
+                    scale = float(np.float32(first[2].data)) if first is not None else None
+                except ValueError:
+                    scale = None
+                if scale is not None and 0 < scale <= 0.1:
+                    depth_units[c.topic.rsplit("/option/", 1)[0]] = scale
+            elif (c.msgtype == "std_msgs/msg/String" and c.topic.endswith("/image" + _REALSENSE_METADATA)
+                  and c.topic.startswith("/device_")):
+                stamps = self._sensor_stamps.setdefault(c.topic[: -len(_REALSENSE_METADATA)], {})
+                for _, t, msg in _messages(reader, [c], path):
+                    fields = dict(kv.partition("=")[::2] for kv in str(msg.data).split(";") if "=" in kv)
+                    try:
+                        stamps[t] = float(fields["timestamp"]) / 1000.0
+                    except (KeyError, ValueError):
+                        pass
         tf_conns = [c for c in conns if c.msgtype == TF]
         for conn, t, msg in _messages(reader, tf_conns, path) if tf_conns else ():
             static = "tf_static" in conn.topic
@@ -417,7 +437,10 @@ class RosbagSource(FrameSource):
                     self.skipped[(topic, "image size differs from its camera info")] += 1
                     continue
                 stamp = stamp_seconds(msg.header.stamp)
-                if stamp == 0.0:                      # no header stamp: the time the bag recorded it
+                sensor = next((s[t] for ns, s in self._sensor_stamps.items() if topic.startswith(ns) and t in s), None)
+                if sensor is not None:                # a RealSense SDK .db3: the sensor's own timestamp
+                    stamp = sensor
+                elif stamp == 0.0:                    # no header stamp: the time the bag recorded it
                     stamp = t * 1e-9
                 try:
                     T, cov = self._pose(e, stamp)
