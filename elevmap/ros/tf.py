@@ -129,6 +129,15 @@ class TfBuffer:
         target, source = str(target).lstrip("/"), str(source).lstrip("/")
         return target == source or self._chain(target)[-1] == self._chain(source)[-1]
 
+    def path(self, target: str, source: str) -> list[str]:
+        """The frames from ``target`` to ``source`` through their common ancestor (a ValueError when not connected)."""
+        target, source = str(target).lstrip("/"), str(source).lstrip("/")
+        if not self.can_connect(target, source):
+            raise TransformUnavailable(f"frames {target!r} and {source!r} are not connected")
+        up_t, up_s = self._chain(target), self._chain(source)
+        common = next(f for f in up_s if f in set(up_t))
+        return up_t[: up_t.index(common) + 1] + list(reversed(up_s[: up_s.index(common)]))
+
     def root(self, frame: str) -> str:
         """The root of ``frame``'s tree."""
         return self._chain(str(frame).lstrip("/"))[-1]

@@ -389,10 +389,7 @@ class RosbagSource(FrameSource):
             return [start] if not self.odometry else [self.map_frame, start]
         if frame not in self.tf.frames or start not in self.tf.frames or not self.tf.can_connect(start, frame):
             return None
-        up_s, up_t = self.tf._chain(frame), self.tf._chain(start)
-        common = next(f for f in up_s if f in set(up_t))
-        path = up_t[: up_t.index(common) + 1] + list(reversed(up_s[: up_s.index(common)]))
-        return ([self.map_frame] if self.odometry else []) + path
+        return ([self.map_frame] if self.odometry else []) + self.tf.path(start, frame)
 
     # -------------------------------------------------------------------------------- frames
 

@@ -70,3 +70,9 @@ def test_unknown_and_disconnected_frames_and_two_parents():
         tf.add("base", "lidar", 10.0, _T())
     with pytest.raises(ValueError, match="tolerance"):
         TfBuffer(tolerance=-1.0)
+
+
+def test_path_names_the_frames_through_the_common_ancestor():
+    tf = _buffer()
+    assert tf.path("map", "cam") == ["map", "base", "cam"]
+    assert tf.path("lidar", "cam") == ["lidar", "base", "cam"]
