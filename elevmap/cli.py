@@ -606,8 +606,9 @@ def _cmd_characterize(args) -> int:
     return 0 if report["model"] is not None else 1
 
 
-COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "captures": _cmd_captures, "compare": _cmd_compare, "simulate": _cmd_simulate,
-            "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run, "bag-info": _cmd_bag_info}
+COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "captures": _cmd_captures, "compare": _cmd_compare,
+            "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run,
+            "bag-info": _cmd_bag_info}
 
 
 def main(argv=None) -> int:

@@ -131,7 +131,8 @@ def _read_stretches(recording, ranges, intrinsics):
                 break
     for (a, b), fs in zip(ranges, frames):
         if len(fs) != b - a + 1:
-            raise ValueError(f"{spec}: frames {a}-{b} asked for, but the recording has {n_seen} frames (0-{n_seen - 1})")
+            raise ValueError(f"{spec}: frames {a}-{b} asked for, but the recording has {n_seen} frames "
+                             f"(0-{n_seen - 1})")
     return [np.stack(fs) for fs in frames], K, scale
 
 

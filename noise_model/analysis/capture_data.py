@@ -40,9 +40,9 @@ from ..sim.targets import (
     REGION_INTERIOR, REGION_LEFT_BAND, REGION_NAMES, REGION_NONE, CaptureGeometry, simulate_target,
 )
 
-__all__ = ["CaptureGeometry", "CaptureData", "capture_geometry", "simulate_capture", "check_captures", "GEOMETRIES", "REGION_NONE", "REGION_INTERIOR",
-           "REGION_EDGE_LEFT", "REGION_EDGE_RIGHT", "REGION_LEFT_BAND", "REGION_BACKGROUND", "REGION_NAMES",
-           "LEFT_BAND_MARGIN_PX_424", "EDGE_PX_424", "LATERAL_EDGE_SIGMAS"]
+__all__ = ["CaptureGeometry", "CaptureData", "capture_geometry", "simulate_capture", "check_captures", "GEOMETRIES",
+           "REGION_NONE", "REGION_INTERIOR", "REGION_EDGE_LEFT", "REGION_EDGE_RIGHT", "REGION_LEFT_BAND",
+           "REGION_BACKGROUND", "REGION_NAMES", "LEFT_BAND_MARGIN_PX_424", "EDGE_PX_424", "LATERAL_EDGE_SIGMAS"]
 
 
 #: How a capture's target pose is known: "measured" (tape or laser meter) or "fitted" (a plane fit to the

@@ -665,7 +665,8 @@ def _settle_meeting_pixels(found: list[MaskedPlane], mean, up, vp, unit: float, 
 
 
 def find_planes(depth_m, K, *, max_planes: int = 4, min_plane_fraction: float = MIN_PLANE_FRACTION,
-                n_sigma: float = MASK_N_SIGMA, max_spread: float = MAX_SPREAD, min_valid_fraction: float = 0.5, depth_unit_m: float = 0.001,
+                n_sigma: float = MASK_N_SIGMA, max_spread: float = MAX_SPREAD, min_valid_fraction: float = 0.5,
+                depth_unit_m: float = 0.001,
                 inlier_rel: float = INLIER_REL, iterations: int = 300, seed: int = 0) -> list[MaskedPlane]:
     """The dominant planes of a static stretch of frames, each with its pixel mask, largest first.
 
