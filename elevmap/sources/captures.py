@@ -261,7 +261,8 @@ class Capture(Mapping):
         That file, resolved against the capture set's folder.
     target : dict
         ``kind``, ``distance_m`` [m], ``yaw_deg``, ``pitch_deg`` [deg], for a board ``width_m``,
-        ``height_m`` [m] (as in the file; unknown keys kept).
+        ``height_m`` [m]; for a plane ``normal`` (towards the camera) and ``offset_m`` [m] (as in the
+        file; unknown keys kept).
     background_m : float or None
         z [m] of a fronto-parallel wall behind a board; None = nothing.
     extra : dict
