@@ -53,7 +53,7 @@ def _pseudo_real(name, params, seed):
 # registry
 # ---------------------------------------------------------------------------------------------
 NAMES = ("disparity_noise", "disparity_quantization", "depth_bias", "invalid_band", "dropout", "correlated_noise",
-         "static_pattern", "flying_pixels", "edge_fattening", "outliers", "axial_refit")
+         "static_pattern", "static_noise", "flying_pixels", "edge_fattening", "outliers", "axial_refit")
 
 
 def test_the_catalogue_identifiers_and_registries_agree():
@@ -81,6 +81,7 @@ def test_bad_parameters_raise_and_name_the_parameter():
     bad = {"disparity_noise": {"s_px": -0.1}, "disparity_quantization": {"subpixel_bits": 13},
            "depth_bias": {"scale": 0.1}, "invalid_band": {"margin_px": float("nan")},
            "dropout": {"p_1m": 1.0}, "correlated_noise": {"length_px": 0.0}, "static_pattern": {"sigma_px": 3.0},
+           "static_noise": {"sigma_z_fraction": 11.0},
            "flying_pixels": {"fraction": 1.5}, "edge_fattening": {"width_px": -1.0},
            "outliers": {"fraction": 0.0}, "axial_refit": {"c0": 0.0}}
     assert set(bad) == set(NAMES)
@@ -190,6 +191,41 @@ def test_depth_bias_and_static_pattern_in_disparity():
     # its correlation at 5 px along rows is exp(-1/2)
     rho = np.mean(a[:, 5:] * a[:, :-5]) / np.mean(a * a)
     assert rho == pytest.approx(math.exp(-0.5), abs=0.1)
+
+
+def test_static_noise_follows_sigma_z_and_stays_over_frames():
+    # a yawed wall: the field's standard deviation is the fraction times sigma_z(z_true, theta) pixel by pixel
+    g = _wall(1.2, 40.0)
+    z, th = g.render()
+    sn = E.static_noise(sigma_z_fraction=0.7, length_px=4.0, seed=5)
+    ctx = _ctx(z, capture_id=g.id, baseline_m=0.05)
+    a = sn(z.copy(), th, np.random.default_rng(1), ctx) - z
+    b = sn(z.copy(), th, np.random.default_rng(2), ctx) - z
+    assert np.array_equal(a, b)                                        # constant over frames and generators
+    ok = np.isfinite(z) & (z < 5.0)
+    unit = a[ok] / (0.7 * nm.axial_sigma(z[ok], th[ok]))
+    G = E.static_pattern(length_px=4.0, seed=5).field(z.shape, g.id)   # the same unit field as static_pattern
+    assert np.allclose(unit, G[ok], atol=1e-9)
+    # temporal mean of 40 frames of the reference plus the field: the field stays, the white noise averages out
+    frames = simulate_capture(g, 40, np.random.default_rng(3), effects=[sn]).astype(float) * 0.001
+    centre = (slice(100, 140), slice(190, 230))
+    resid = frames[:, centre[0], centre[1]].mean(axis=0) - z[centre]
+    expect = a[centre]
+    assert np.corrcoef(resid.ravel(), expect.ravel())[0, 1] > 0.9
+    assert frames[:, centre[0], centre[1]].std(axis=0, ddof=1).mean() == pytest.approx(
+        float(np.mean(nm.axial_sigma(z[centre], th[centre]))), rel=0.06)   # temporal std unchanged
+
+
+def test_static_noise_fit_tells_the_static_part_from_a_temporal_one():
+    # a static field and a correlated field drawn afresh every frame, 12 frames: the static fit reads the
+    # static part only, however strong the temporal part left in the temporal mean is
+    true = {"sigma_z_fraction": 0.6, "length_px": 6.0, "seed": 4}
+    effs = [E.static_noise(**true), E.correlated_noise(sigma_z_fraction=1.2, length_px=3.0)]
+    real = [CaptureData.from_units(g, simulate_capture(g, 12, np.random.default_rng([21, i]), effects=effs))
+            for i, g in enumerate(WALLS)]
+    fit = E.fit_effect("static_noise", real, seed=5)
+    ok, errors = E.within_tolerance("static_noise", true, fit)
+    assert ok, f"fit {fit}, errors {errors}"
 
 
 def test_disparity_noise_and_outliers_in_disparity_units():
@@ -383,7 +419,7 @@ def test_single_frame_fit_recovers_parameters_within_its_tolerance(name):
     _assert_valid(name, fit)
 
 
-@pytest.mark.parametrize("name", ("disparity_noise", "correlated_noise", "static_pattern", "axial_refit"))
+@pytest.mark.parametrize("name", ("disparity_noise", "correlated_noise", "static_pattern", "static_noise", "axial_refit"))
 def test_two_frame_fits_of_temporal_statistics_meet_the_multi_frame_tolerance(name):
     seed = 3000 + NAMES.index(name)
     true = E.draw_params(name, np.random.default_rng(seed))

@@ -1,4 +1,4 @@
-"""Fits of the correlated effects: ``correlated_noise``, ``static_pattern``.
+"""Fits of the correlated effects: ``correlated_noise``, ``static_pattern``, ``static_noise``.
 
 Both fit A exp(-h^2 / (2 l^2)) to the excess (real minus base) lag covariance of a residual
 (:func:`_fit_gaussian_cov`): correlated_noise that of the per-frame residual about the temporal mean
@@ -255,6 +255,104 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
     return {"sigma_px": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
 
 
+# ---- static_noise ---------------------------------------------------------------------------------
+_STATIC_NOISE_LAGS = (0, 1, 2, 3, 4, 6, 8, 11, 15, 20, 26, 34, 44)
+
+
+def _static_lag_cov(c, m, fb, dtrue, scale, lags):
+    """The static part's lag covariance of the disparity residual in units of ``scale``, told apart from
+    the temporal part's share of the temporal mean.
+
+    On the mask's pixels with data in every frame: r = the temporal mean of d = f B / z minus the true
+    disparity, minus its best plane in (u, v); dev_t = d_t - the temporal mean. With a static part s and
+    a temporal part e_t of lag covariances S(h) and T(h), E[r r'] = S(h) + T(h) / F and
+    E[dev_t dev_t'] = T(h) (1 - 1/F), so S(h) = cov(r) - cov(dev) / (F - 1) whatever the temporal part is
+    (white, correlated, stronger or weaker than the model's): with few frames, the temporal noise left
+    in the mean is not read as a static pattern. Pixels with a value more than 8 robust sigmas from the
+    pixel's mean, or a mean more than 8 robust sigmas from the plane (outliers), are left out.
+
+    Returns (S (len(lags),), pairs (len(lags),)) or None when fewer than 100 pixels qualify.
+    """
+    F = c.n_frames
+    d = fb / c.depth_m
+    ok = m & np.all(np.isfinite(d), axis=0)
+    if ok.sum() < 100:
+        return None
+    mean = np.where(ok, d.mean(axis=0), np.nan)
+    vv, uu = np.nonzero(ok)
+    A = np.column_stack([np.ones(vv.size), uu, vv]).astype(np.float64)
+    y = (mean - dtrue)[ok]
+    coef = np.linalg.lstsq(A, y, rcond=None)[0]
+    sc = np.where(scale[ok] > 0, scale[ok], 1.0)
+    x_mean = (y - A @ coef) / sc
+    x_dev = (d[:, ok] - mean[ok]) / sc
+    s_dev = 1.4826 * float(np.median(np.abs(x_dev)))
+    s_mean = 1.4826 * float(np.median(np.abs(x_mean - np.median(x_mean))))
+    keep = np.all(np.abs(x_dev) <= 8.0 * max(s_dev, 1e-12), axis=0) & (np.abs(x_mean) <= 8.0 * max(s_mean, 1e-12))
+    if keep.sum() < 100:
+        return None
+    km = np.zeros(ok.shape, dtype=bool)
+    km[vv[keep], uu[keep]] = True
+    rm = np.zeros(ok.shape)
+    rm[vv, uu] = x_mean
+    rd = np.zeros((F,) + ok.shape)
+    rd[:, vv, uu] = x_dev
+    cm, n = _lag_cov(rm[None], km, lags)
+    cd, _ = _lag_cov(rd, km, lags)
+    return cm - cd / (F - 1), n
+
+
+def _fit_static_noise(real, base, model, rois=None, **_):
+    """Excess static lag covariance of the disparity residual in units of the model's sigma_d.
+
+    Per capture (interior pixels): sigma_d = sigma_z(z_true, theta) f B / z_true^2, the model's noise in
+    disparity; the static part's lag covariance of the residual over sigma_d, told apart from the
+    temporal noise left in the temporal mean (:func:`_static_lag_cov`), so that neither a different
+    temporal level nor a temporal correlation reads as static with few frames. The field adds
+    sigma_z_fraction^2 rho(h) to it; the base simulation's is subtracted (it holds what the effects
+    already selected make static). Pooled over captures by pair counts, fitted with
+    :func:`_fit_gaussian_cov`. The field's realisation is not recovered (``seed`` 0).
+
+    A capture of one frame cannot tell the static part from the temporal one: its residual about the
+    target's best plane, over sigma_d, is read as static, and lag 0 is left out of the fit (white
+    noise adds there).
+    """
+    num, den = np.zeros(len(_STATIC_NOISE_LAGS)), np.zeros(len(_STATIC_NOISE_LAGS))
+    single = False
+    for c, b in zip(real, base):
+        g = c.geometry
+        z, th, _, fb = _nominal(g, model)
+        m = _interior(g, model, _roi(rois, g))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dtrue = fb / z
+            sd = np.where(m, axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0), model)
+                          * fb / np.where(m, z, 1.0) ** 2, 1.0)
+        if c.n_frames >= 2:
+            sr = _static_lag_cov(c, m, fb, dtrue, sd, _STATIC_NOISE_LAGS)
+            sb = _static_lag_cov(b, m, fb, dtrue, sd, _STATIC_NOISE_LAGS)
+            if sr is None or sb is None:
+                continue
+            (cr, n), (cb, _) = sr, sb
+        else:
+            rr = _single_frame_residual(c, m, fb)
+            rb = _single_frame_residual(b, m, fb)
+            if rr is None or rb is None:
+                continue
+            cr, n = _lag_cov((rr / sd)[None], m, _STATIC_NOISE_LAGS)
+            cb, _ = _lag_cov((rb / sd)[None], m, _STATIC_NOISE_LAGS)
+            single = True
+        ok = np.isfinite(cr) & np.isfinite(cb)
+        num[ok] += n[ok] * (cr[ok] - cb[ok])
+        den[ok] += n[ok]
+    if not (den > 0).all():
+        raise ValueError("static_noise: no capture with >= 100 interior pixels with data in every frame")
+    lags, exc = np.array(_STATIC_NOISE_LAGS), num / den
+    if single:
+        lags, exc = lags[1:], exc[1:]
+    A, ell = _fit_gaussian_cov(lags, exc, lmin=0.5, lmax=80.0)
+    return {"sigma_z_fraction": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
+
+
 #: Registry records (:class:`~.spec.FitSpec`) of this module's fits.
 SPECS = (
     FitSpec("correlated_noise", _fit_correlated_noise, needs=("wall", "board"),
@@ -264,4 +362,7 @@ SPECS = (
     FitSpec("static_pattern", _fit_static_pattern, needs=("wall", "board"),
             tolerance={"sigma_px": ("rel", 0.1), "length_px": ("rel", 0.15)},
             tolerance_single_frame={"sigma_px": ("rel", 0.05), "length_px": ("rel", 0.16)}),
+    FitSpec("static_noise", _fit_static_noise, needs=("wall", "board"),
+            tolerance={"sigma_z_fraction": ("rel", 0.1), "length_px": ("rel", 0.15)},
+            tolerance_single_frame={"sigma_z_fraction": ("rel", 0.05), "length_px": ("rel", 0.16)}),
 )

@@ -18,7 +18,7 @@ Modules
 :mod:`.coverage`
     ``invalid_band``, ``dropout``.
 :mod:`.correlation`
-    ``correlated_noise``, ``static_pattern``.
+    ``correlated_noise``, ``static_pattern``, ``static_noise``.
 :mod:`.edges`
     ``edge_fattening``, ``flying_pixels``.
 :mod:`.residuals`
@@ -34,6 +34,8 @@ Effects (identifiers; canonical order :data:`ORDER`)
     Depth scale error and disparity offset.
 ``static_pattern`` (E5, E10)
     A smooth disparity-offset field, constant over the frames of a capture.
+``static_noise`` (E10)
+    The static share of the matching error: a field proportional to sigma_z, constant over the frames.
 ``disparity_noise`` (E1)
     Extra noise Gaussian in disparity (skewed and growing as z^2 in depth).
 ``correlated_noise`` (E9)
@@ -59,6 +61,10 @@ Effects (identifiers; canonical order :data:`ORDER`)
 ``static_pattern``
     spatial std of a frame's (and of the temporal mean's) residual + sigma_px z^2 / (f B); correlation
     length of the temporal-mean residual; bias per 3 x 3 cell +-, image mean ~0; temporal std unchanged.
+``static_noise``
+    spatial std of a frame's (and of the temporal mean's) residual + f sigma_z in quadrature (with the
+    model's angle and depth dependence); correlation length of the temporal-mean residual; temporal std
+    unchanged.
 ``disparity_noise``
     temporal and spatial std + z^2 s / (f B) in quadrature, no angle dependence (most at far, frontal);
     right skew of the residual; tiny positive bias z^3 s^2 / (f B)^2; no correlation.
@@ -82,9 +88,9 @@ Effects (identifiers; canonical order :data:`ORDER`)
 
 Pairs a statistic separates: axial_refit / correlated_noise (correlation length), axial_refit /
 disparity_noise (angle dependence, skew), static_pattern / correlated_noise (temporal std),
-static_pattern / depth_bias (image mean ~0 vs systematic with z), outliers / disparity_noise (tails vs
-core width), invalid_band / dropout (left band only vs everywhere), flying_pixels / edge_fattening
-(intermediate depths vs foreground depth).
+static_pattern / static_noise (angle and depth dependence), static_pattern / depth_bias (image mean ~0
+vs systematic with z), outliers / disparity_noise (tails vs core width), invalid_band / dropout (left
+band only vs everywhere), flying_pixels / edge_fattening (intermediate depths vs foreground depth).
 
 Registry
 --------
@@ -112,7 +118,7 @@ import numpy as np
 from ...registry import build_from_registry
 from . import correlation, coverage, disparity, edges, residuals
 from .base import Effect, gaussian_random_field
-from .correlation import CORRELATED_NOISE_DEFAULTS, correlated_noise, static_pattern
+from .correlation import CORRELATED_NOISE_DEFAULTS, correlated_noise, static_noise, static_pattern
 from .coverage import dropout, invalid_band
 from .disparity import DEPTH_BIAS_DEFAULTS, depth_bias, disparity_noise, disparity_quantization
 from .edges import EDGE_JUMP_PX, edge_fattening, flying_pixels
@@ -124,8 +130,8 @@ __all__ = ["Effect", "gaussian_random_field", "EFFECTS", "make_effect", "ORDER",
            "usable_captures", "fit_effect", "effects_from_report", "CORRELATED_NOISE_DEFAULTS",
            "DEPTH_BIAS_DEFAULTS", "EDGE_JUMP_PX", "disparity_lattice", "LATTICE_FB_RANGE",
            "FIT_TOLERANCE_SINGLE_FRAME", "EffectSpec", "SPECS",
-           "axial_refit", "depth_bias", "static_pattern", "disparity_noise", "correlated_noise", "outliers",
-           "edge_fattening", "flying_pixels", "disparity_quantization", "invalid_band", "dropout"]
+           "axial_refit", "depth_bias", "static_pattern", "static_noise", "disparity_noise", "correlated_noise",
+           "outliers", "edge_fattening", "flying_pixels", "disparity_quantization", "invalid_band", "dropout"]
 
 #: The registry: effect name -> :class:`EffectSpec`, one record per effect, in the catalogue's order
 #: (the order of help texts and of "known: ..." messages). Each family module lists its own records.

@@ -2,9 +2,13 @@
 
 * :func:`correlated_noise` (E9): a Gaussian random field drawn afresh every frame, proportional to sigma_z.
 * :func:`static_pattern` (E5, E10): a smooth disparity-offset field, the same in every frame of a capture.
+* :func:`static_noise` (E10): the static share of the matching error, a field proportional to sigma_z,
+  the same in every frame of a capture.
 
-Both draw their fields with :func:`~.base.gaussian_random_field`. A temporal statistic separates them
-(the static pattern survives a temporal mean, the per-frame field does not). Physics and sources: the
+All draw their fields with :func:`~.base.gaussian_random_field`. A temporal statistic separates them
+(the static fields survive a temporal mean, the per-frame field does not); the angle and depth
+dependence separates the two static ones (``static_pattern`` is uniform in disparity pixels,
+``static_noise`` follows the model's sigma_z). Physics and sources: the
 sections cited of ``docs/depth-effects.md``.
 """
 
@@ -16,10 +20,10 @@ import numpy as np
 
 from ...checks import check_integer_range, check_scalar_range
 from ...d435 import D435, SensorModel, axial_sigma_unchecked
-from .base import Effect, _fb, _to_depth, _to_disparity, check_sensor_model, gaussian_random_field
+from .base import Effect, _fb, _to_depth, _to_disparity, _z_true, check_sensor_model, gaussian_random_field
 from .spec import EffectSpec
 
-__all__ = ["correlated_noise", "static_pattern", "CORRELATED_NOISE_DEFAULTS"]
+__all__ = ["correlated_noise", "static_pattern", "static_noise", "CORRELATED_NOISE_DEFAULTS"]
 
 
 #: Defaults of :func:`correlated_noise`: a correlated part as strong as the paper's white noise
@@ -52,8 +56,8 @@ class _CorrelatedNoise(Effect):
         return z + sigma * g
 
 
-class _StaticPattern(Effect):
-    name = "static_pattern"
+class _StaticField(Effect):
+    """A unit field per capture, drawn from its own generator (never the frame's ``rng``)."""
 
     def __init__(self, params: dict):
         super().__init__(params)
@@ -75,10 +79,31 @@ class _StaticPattern(Effect):
             self._fields[key] = g
         return self._fields[key]
 
+
+class _StaticPattern(_StaticField):
+    name = "static_pattern"
+
     def _apply(self, z, theta, rng, context):
         fb = _fb(context, self.name)
         G = self.field(z.shape, context.get("capture_id") or "")
         return _to_depth(fb, _to_disparity(fb, z) + self.params["sigma_px"] * G)
+
+
+class _StaticNoise(_StaticField):
+    name = "static_noise"
+
+    def __init__(self, params: dict, model: SensorModel):
+        super().__init__(params)
+        self.model = model
+
+    def _apply(self, z, theta, rng, context):
+        zt = _z_true(context, z.shape, self.name)
+        G = self.field(z.shape, context.get("capture_id") or "")
+        with np.errstate(invalid="ignore"):
+            hit = np.isfinite(zt) & np.isfinite(theta) & (zt > 0)
+        sigma = np.zeros(z.shape)
+        sigma[hit] = self.params["sigma_z_fraction"] * axial_sigma_unchecked(zt[hit], theta[hit], self.model)
+        return z + sigma * G
 
 
 def correlated_noise(sigma_m: float | None = None, length_px: float = CORRELATED_NOISE_DEFAULTS["length_px"], *,
@@ -164,6 +189,47 @@ def static_pattern(sigma_px: float = 0.03, length_px: float = 6.0, seed: int = 0
     return _StaticPattern(ps)
 
 
+def static_noise(sigma_z_fraction: float = 0.8, length_px: float = 6.0, seed: int = 0, *,
+                 model: SensorModel = D435) -> Effect:
+    """The static share of the matching error: a field proportional to sigma_z, the same in every frame (E10).
+
+    Physics and source (docs/depth-effects.md, E10): with a static scene the projector's dots, the
+    surface's texture under them and the camera are fixed, so the part of the matching error that the
+    dots and the texture decide repeats every frame; only the imagers' shot, read and speckle noise is
+    drawn afresh. Its size follows the matching error itself (a weaker, more slanted or farther
+    surface gives a worse match in every frame), so it scales with sigma_z, unlike a calibration
+    pattern (:func:`static_pattern`), which is a fixed disparity offset. Intel's Depth Quality Tool
+    reports the two parts separately (spatial against temporal noise, ``tools/depth-quality/readme.md``).
+
+    Forward model: z' = z + sigma_z_fraction * sigma_z(z_true, theta) * G(u, v), sigma_z of ``model``
+    at the true depth and incidence angle (``context['z_true']``, ``theta``), G the unit field of
+    :func:`static_pattern` (zero mean and unit standard deviation over the image, correlation
+    exp(-h^2 / (2 length_px^2)), drawn from ``numpy.random.default_rng([seed, crc32(capture_id), H, W])``,
+    never from the frame's ``rng``). The temporal noise is unchanged: the temporal mean of N frames
+    keeps the field and 1/N of the per-frame variance.
+
+    D435 values: the physical D435 simulation's static part is a fraction of the order of one of its
+    temporal standard deviation, correlated over about the matching window (docs/physical-d435.md,
+    the emergent effects); a real unit's share is not documented [estimate].
+    ``sigma_z_fraction`` in (0, 10], ``length_px`` in (0, 200] px, ``seed`` an integer in [0, 2^31 - 1].
+
+    Parameters
+    ----------
+    sigma_z_fraction : float
+        The field's standard deviation in units of the model's sigma_z at each pixel.
+    length_px : float
+        Correlation length l [px of the simulated stream].
+    seed : int
+        Seed of the field's realisation.
+    model : SensorModel
+        The sigma_z the field scales with (the paper's D435 by default).
+    """
+    ps = {"sigma_z_fraction": check_scalar_range(sigma_z_fraction, "sigma_z_fraction", 0.0, 10.0, open_lo=True),
+          "length_px": check_scalar_range(length_px, "length_px", 0.0, 200.0, open_lo=True),
+          "seed": check_integer_range(seed, "seed", 0, 2 ** 31 - 1)}
+    return _StaticNoise(ps, check_sensor_model(model))
+
+
 #: Registry records (:class:`~.spec.EffectSpec`) of this module's effects.
 SPECS = (
     EffectSpec("correlated_noise", correlated_noise, order=4,
@@ -174,5 +240,10 @@ SPECS = (
                # 0.02-0.05 px: 1.9-4.7 mm at 1 m, 7.5-19 mm at 2 m; correlated over 3-10 px
                param_ranges={"sigma_px": (0.02, 0.05), "length_px": (3.0, 10.0), "seed": (0, 1_000_000)},
                valid={"sigma_px": (1e-9, 2.0), "length_px": (0.05, 200.0)},
+               integer_params={"seed": (0, 2 ** 31 - 1)}),
+    EffectSpec("static_noise", static_noise, order=2,
+               # a static part of 0.5-1.5 times the temporal sigma, correlated over 2-16 px
+               param_ranges={"sigma_z_fraction": (0.5, 1.5), "length_px": (2.0, 16.0), "seed": (0, 1_000_000)},
+               valid={"sigma_z_fraction": (1e-6, 10.0), "length_px": (0.05, 200.0)},
                integer_params={"seed": (0, 2 ** 31 - 1)}),
 )
