@@ -13,6 +13,7 @@ random parameters); ``run_realdata`` runs on single real frames whose geometry i
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -20,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from noise_model.analysis import diagnosis as G
-from noise_model.analysis.capture_data import CaptureData, CaptureGeometry
+from noise_model.analysis.capture_data import CaptureData
 from noise_model.analysis.diagnosis import (
-    FORMAT, SELFTEST_PAIR, CaptureSimulator, diagnose, gap_capture_of, parse_effect_names, plane_geometry,
+    FORMAT, SELFTEST_PAIR, SELFTEST_STATIC_PAIR, CaptureSimulator, diagnose, gap_capture_of, parse_effect_names, plane_geometry,
     selftest_case, selftest_cases, selftest_geometries, split_captures,
 )
 from noise_model.analysis.planes import fit_plane_ransac
@@ -33,8 +34,9 @@ from ..fileio import check_outputs, json_ready, write_json_atomic
 # diagnose, split_captures, parse_effect_names, selftest_geometries and SELFTEST_PAIR are the library's
 # (noise_model.analysis.diagnosis), importable from here too for the examples and tests that use them.
 __all__ = ["FORMAT", "run_gap", "run_selftest", "run_realdata", "format_summary", "format_selftest",
-           "REALDATA_PLANES", "realdata_captures", "load_capture_set", "log_gap_recording", "diagnose",
-           "split_captures", "parse_effect_names", "selftest_geometries", "SELFTEST_PAIR"]
+           "REALDATA_PLANES", "realdata_captures", "load_capture_set", "load_capture_sets", "log_gap_recording",
+           "diagnose", "split_captures", "parse_effect_names", "selftest_geometries", "SELFTEST_PAIR",
+           "SELFTEST_STATIC_PAIR"]
 
 
 @contextlib.contextmanager
@@ -56,27 +58,53 @@ def _model_bar(show: bool):
 
 
 def load_capture_set(real_dir):
-    """Read a capture set into CaptureData (geometry from captures.json, frames from its depth files)."""
+    """Read a capture set into CaptureData (geometry, mask and the geometry's origin from captures.json,
+    frames from its depth files)."""
     from ..sources.captures import read_capture_set
 
     cs = read_capture_set(real_dir)
     out = []
     for cap in cs.captures:
         camera = cs.camera_for(cap.id) if cap.is_recording else cs.camera
-        g = CaptureGeometry.from_capture_set_entry(camera, cap.to_dict())
-        out.append(CaptureData.from_units(g, np.asarray(cs.load_depth(cap.id))))
+        out.append(CaptureData.from_capture_entry(camera, cap.to_dict(), np.asarray(cs.load_depth(cap.id)),
+                                                  cs.load_mask(cap.id)))
     return cs, out
+
+
+def load_capture_sets(real_dirs):
+    """Read one capture set or several into one list of CaptureData (ids must be unique across the sets).
+
+    Returns
+    -------
+    sets : list of CaptureSet
+    captures : list of CaptureData
+    """
+    dirs = [real_dirs] if isinstance(real_dirs, (str, os.PathLike)) else list(real_dirs)
+    if not dirs:
+        raise ValueError("give at least one capture-set folder")
+    sets, caps, where = [], [], {}
+    for d in dirs:
+        cs, data = load_capture_set(d)
+        for c in data:
+            if c.id in where:
+                raise ValueError(f"capture id {c.id!r} is in both {where[c.id]} and {d}: ids must be unique "
+                                 "across the capture sets diagnosed together")
+            where[c.id] = str(d)
+        sets.append(cs)
+        caps += data
+    return sets, caps
 
 
 def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=None, seed: int = 0,
             show_progress: bool = True, model: SensorModel = D435, config: G.SelectionConfig | None = None,
             n_splits: int = 64, n_boot: int = 64, overwrite: bool = False) -> dict:
-    """``elevmap gap REAL_CAPTURES``: diagnose a capture set, write the report (and recording).
+    """``elevmap gap REAL_CAPTURES [REAL_CAPTURES ...]``: diagnose capture sets, write the report (and recording).
 
     Parameters
     ----------
-    real_dir : path
-        The real capture set (``captures.json`` folder).
+    real_dir : path or sequence of paths
+        The real capture set (``captures.json`` folder), or several diagnosed together as one (e.g. the
+        boards and the walls of one camera; capture ids unique across them).
     json_path : path, optional
         Write the report there (atomically; an existing file only with ``overwrite``).
     rrd_path : path, optional
@@ -99,13 +127,15 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
         The report of :func:`noise_model.analysis.diagnosis.diagnose` plus ``mismatches`` (recordings
         whose intrinsics differ from captures.json) and ``rrd`` when a recording was written.
     """
+    dirs = [real_dir] if isinstance(real_dir, (str, os.PathLike)) else list(real_dir)
     jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite,
-                           inputs=[Path(real_dir) / "captures.json"]).values()
-    cs, real = load_capture_set(real_dir)
+                           inputs=[Path(d) / "captures.json" for d in dirs]).values()
+    sets, real = load_capture_sets(dirs)
     with _model_bar(show_progress) as progress:
         report, res = diagnose(real, heldout=heldout, effects=effects, seed=seed, model=model, progress=progress,
-                               real_label=str(real_dir), config=config, n_splits=n_splits, n_boot=n_boot)
-    report["mismatches"] = list(cs.mismatches)
+                               real_label=", ".join(str(d) for d in dirs), config=config, n_splits=n_splits,
+                               n_boot=n_boot)
+    report["mismatches"] = [m for cs in sets for m in cs.mismatches]
     if rp is not None:
         log_gap_recording(rp, report, res, real, model, seed)
         report["rrd"] = str(rp)
@@ -218,7 +248,9 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
     effect first (first selected), recover its parameters within
     :data:`noise_model.analysis.effect_fits.FIT_TOLERANCE` and shrink the held-out gap by at least 60 %. With no
     effect the baseline must not be significant and nothing may be selected; with the two effects of
-    :data:`SELFTEST_PAIR` both must be selected.
+    :data:`SELFTEST_PAIR` both must be selected; with the static and the per-frame field of
+    :data:`SELFTEST_STATIC_PAIR` both must be selected and each fitted within tolerance (the static and the
+    temporal part told apart with ``n_frames`` frames).
 
     Parameters
     ----------
@@ -253,7 +285,8 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
             rows = [f.result() for f in tqdm(futs, desc="selftest", unit="case", disable=not show_progress)]
     out = {"passed": all(r["passed"] for r in rows), "rows": rows,
            "settings": {"seed": int(seed), "n_frames": int(n_frames), "width": int(width), "height": int(height),
-                        "pair": list(SELFTEST_PAIR)},
+                        "pair": list(SELFTEST_PAIR),
+                        "static_pair": list(SELFTEST_STATIC_PAIR)},
            "seconds": time.perf_counter() - t0}
     out = json_ready(out)
     if jp is not None:

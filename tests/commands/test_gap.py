@@ -296,6 +296,61 @@ def test_report_round_trip_and_overwrite_protection(tmp_path):
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".")]                 # no temporary leftovers
 
 
+def _write_fitted_set(folder, ids_prefix="plane"):
+    """Plane targets with fitted geometry and masks (the left half of the image's rows 10-50): the reference
+    simulation inside the mask, no data outside it."""
+    from elevmap.sources.captures import write_capture_set
+    from noise_model.analysis.capture_data import capture_geometry
+
+    cam = {"width": 106, "height": 60, "fx": 53.0, "fy": 53.0, "ppx": 52.5, "ppy": 29.5, "depth_scale": 0.001,
+           "baseline_m": 0.05}
+    mask = np.zeros((60, 106), dtype=bool)
+    mask[10:50, 20:80] = True
+    entries = []
+    for i, (d, y) in enumerate([(d, y) for d in (0.7, 1.1, 1.5) for y in (0.0, 25.0)]):
+        a = math.radians(y)
+        entry = {"id": f"{ids_prefix}_{i}", "geometry": "fitted",
+                 "target": {"kind": "plane", "normal": [-math.sin(a), 0.0, -math.cos(a)], "offset_m": d * math.cos(a)}}
+        g = capture_geometry(cam, entry)
+        units = simulate_capture(g, 8, np.random.default_rng([78, i]), D435)
+        units[:, ~mask] = 0
+        entries.append((entry, units, mask))
+    return write_capture_set(folder, cam, entries)
+
+
+def test_fitted_geometry_skips_bias_and_uses_the_masks(tmp_path):
+    from elevmap.commands import gap as EG
+
+    _write_small_set(tmp_path / "walls")
+    _write_fitted_set(tmp_path / "planes")
+    rep = EG.run_gap([tmp_path / "walls", tmp_path / "planes"], effects="depth_bias,invalid_band",
+                     show_progress=False, heldout="none", n_splits=16, n_boot=16)
+    ids = [c["id"] for c in rep["captures"]]
+    assert len(ids) == 12 and {f"plane_{i}" for i in range(6)} <= set(ids)       # both folders, one diagnosis
+    assert rep["fitted_geometry"]["captures"] == [f"plane_{i}" for i in range(6)]
+    assert "bias_m" in rep["fitted_geometry"]["not_computed"]
+    # the planes' bias is not computed: the bias entries are those of strata without a plane
+    def inside(c, st):
+        return (st["distance_m"][0] - 1e-6 <= c["distance_m"] < st["distance_m"][1] - 1e-6
+                and st["angle_deg"][0] - 1e-6 <= c["angle_deg"] < st["angle_deg"][1] - 1e-6)
+
+    planes = [c for c in rep["captures"] if c["id"].startswith("plane")]
+    bias = [w["stratum"] for w in rep["where"] if w["statistic"] == "bias_m"]
+    assert bias and not any(inside(c, st) for st in bias for c in planes)
+    # the masks are the planes' regions of interest: the pixels outside them (no data) are not a fill gap
+    fill = [w for w in rep["where"] if w["statistic"] == "fill_rate" and w["gap"] > 0]
+    assert not fill, fill[:3]
+    only_planes = EG.run_gap(tmp_path / "planes", effects="depth_bias,invalid_band", show_progress=False,
+                             heldout="none", n_splits=16, n_boot=16)
+    assert "depth_bias" in only_planes["skipped"] and "measured distance" in only_planes["skipped"]["depth_bias"]
+    assert "bias_m" in only_planes["unavailable"]
+    assert not [w for w in only_planes["where"] if w["statistic"] == "bias_m"]
+    assert not only_planes["baseline"]["significant"]
+    _write_small_set(tmp_path / "again")
+    with pytest.raises(ValueError, match="unique"):
+        EG.run_gap([tmp_path / "walls", tmp_path / "again"], show_progress=False)
+
+
 def test_split_and_effect_arguments():
     from elevmap.commands import gap as EG
 

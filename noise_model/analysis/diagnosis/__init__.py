@@ -32,8 +32,8 @@ from .floor import (
     MIN_FLOOR, MIN_SIGNIFICANT_GAP, Z_CAP, Z_FLOOR, Floor, GapResult, aggregate_by, compare, make_floor, shrink_test,
 )
 from .run import (
-    FORMAT, MAX_WHERE, SELFTEST_PAIR, CaptureSimulator, EffectFitter, auto_heldout, capture_rng, diagnose,
-    gap_capture_of, parse_effect_names, plane_geometry, selftest_case, selftest_cases, selftest_geometries,
+    FORMAT, MAX_WHERE, SELFTEST_PAIR, SELFTEST_STATIC_PAIR, CaptureSimulator, EffectFitter, auto_heldout,
+    capture_rng, diagnose, gap_capture_of, parse_effect_names, plane_geometry, selftest_case, selftest_cases, selftest_geometries,
     split_captures,
 )
 from .selection import Diagnosis, DiagnosisResult, SelectionConfig, model_key
@@ -51,7 +51,8 @@ __all__ = [
     "Diagnosis", "DiagnosisResult", "SelectionConfig", "model_key", "wasserstein1_hist", "aggregate_by",
     "HIST_EDGES", "HIST_CENTRES", "LAGS_PX", "LATTICE_STEPS_PER_PX", "TAIL_SIGMAS", "CORE_SIGMAS", "MAX_RANGE_M",
     "Z_CAP", "MIN_COUNT",
-    "FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "diagnose", "parse_effect_names", "split_captures", "auto_heldout",
+    "FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "SELFTEST_STATIC_PAIR", "diagnose", "parse_effect_names",
+    "split_captures", "auto_heldout",
     "capture_rng", "CaptureSimulator", "EffectFitter", "gap_capture_of", "plane_geometry", "selftest_geometries",
     "selftest_cases", "selftest_case",
 ]

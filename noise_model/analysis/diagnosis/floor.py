@@ -106,12 +106,17 @@ def _weights(defined: np.ndarray) -> np.ndarray:
 
 
 def make_floor(keys, real_pooled, real_sampling: FrameSampling, n_sim_frames: int,
-               floor_pooled=None, floor_sampling: FrameSampling | None = None) -> Floor:
+               floor_pooled=None, floor_sampling: FrameSampling | None = None, exclude=None,
+               exclude_reason: str = "") -> Floor:
     """The noise floor from split halves of the real frames (or, for single-frame real data, of a
     reference simulation: ``floor_pooled`` with its ``floor_sampling``).
 
     kappa scales the RMS difference between halves of h frames to the expected difference between
     F_real real and F_sim simulated frames: kappa = sqrt((1/F_real + 1/F_sim) / (2/h)).
+
+    ``exclude`` (bool (len(STATISTICS), len(keys)), optional) marks entries that are not computed
+    (e.g. the bias of strata holding captures whose geometry was fitted to their own frames, where
+    the fit absorbs it); a statistic excluded everywhere is listed as unavailable with ``exclude_reason``.
     """
     rv, rh = statistic_values(real_pooled)
     if real_sampling.halves.size:
@@ -140,13 +145,19 @@ def make_floor(keys, real_pooled, real_sampling: FrameSampling, n_sim_frames: in
         sig_loo = np.maximum(kappa * loo, _MIN_FLOOR[None, :, None])
         z_null = np.minimum(kappa * d / sig_loo, Z_CAP)
     defined = np.isfinite(rv[0]) & np.isfinite(sigma0)
+    excluded = np.zeros(defined.shape, dtype=bool) if exclude is None else np.asarray(exclude, dtype=bool)
+    if excluded.shape != defined.shape:
+        raise ValueError(f"exclude must have shape {defined.shape}, got {excluded.shape}")
+    defined &= ~excluded
     w = _weights(defined)
     g_null = (w[None] * np.where(defined[None] & np.isfinite(z_null), np.maximum(z_null - Z_FLOOR, 0.0), 0.0)
               ).sum(axis=(1, 2))
     unavailable = {}
     for s, name in enumerate(STATISTICS):
         if not defined[s].any():
-            if name == "temporal_std_m" and real_sampling.n_frames < 2:
+            if excluded[s].any() and not (np.isfinite(rv[0, s]) & np.isfinite(sigma0[s]) & ~excluded[s]).any():
+                unavailable[name] = exclude_reason or "not computed"
+            elif name == "temporal_std_m" and real_sampling.n_frames < 2:
                 unavailable[name] = "needs >= 2 frames per capture (the real captures have 1)"
             elif not np.isfinite(rv[0, s]).any():
                 unavailable[name] = "too few pixels with data in every stratum"

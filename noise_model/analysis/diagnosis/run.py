@@ -47,9 +47,9 @@ from .selection import Diagnosis, SelectionConfig, model_key
 from .strata import Binning, GapCapture, make_gap_capture
 from .sums import STAT_UNITS
 
-__all__ = ["FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "parse_effect_names", "auto_heldout", "split_captures",
-           "capture_rng", "CaptureSimulator", "EffectFitter", "gap_capture_of", "diagnose", "plane_geometry",
-           "selftest_geometries", "selftest_cases", "selftest_case"]
+__all__ = ["FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "SELFTEST_STATIC_PAIR", "MEASURED_ONLY", "parse_effect_names",
+           "auto_heldout", "split_captures", "capture_rng", "CaptureSimulator", "EffectFitter", "gap_capture_of",
+           "diagnose", "plane_geometry", "selftest_geometries", "selftest_cases", "selftest_case"]
 
 #: The report's format.
 FORMAT = "d435-gap/1"
@@ -57,6 +57,12 @@ FORMAT = "d435-gap/1"
 MAX_WHERE = 300
 #: The two effects of the selftest's two-effect case.
 SELFTEST_PAIR = ("invalid_band", "correlated_noise")
+#: Effects whose fit compares against the true distance: not fitted on captures whose geometry was fitted
+#: to their own frames (capture-set ``geometry: "fitted"``), where a plane fit absorbs bias and scale.
+MEASURED_ONLY = ("depth_bias",)
+#: The selftest's static-and-temporal case: a static field and a per-frame correlated field at once, which
+#: the diagnosis must tell apart (both selected, both fitted within tolerance) from the captures' few frames.
+SELFTEST_STATIC_PAIR = ("static_noise", "correlated_noise")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -254,8 +260,9 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
     progress : callable, optional
         ``progress(message)`` after every simulated model (a progress bar's step).
     rois, distances, kinds : dict, optional
-        Per capture id: a boolean region of interest (H, W) (only those pixels count), the distance
-        [m] for its distance bin (default: the target's), its kind label.
+        Per capture id: a boolean region of interest (H, W) (only those pixels count; a capture's own
+        ``mask`` is one too, and both apply when both are given), the distance [m] for its distance bin
+        (default: the target's), its kind label.
     real_label : str
         What the report's ``real`` says.
     config : SelectionConfig, optional
@@ -280,7 +287,9 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
         ``statistics`` (units), ``by`` / ``by_final`` (mean gap and share per statistic, region, image
         cell, distance and angle bin, before / after), ``captures``, ``frames``, ``sim_frames``,
         ``seed``, ``model``, ``binning``, ``seconds``; ``frames_cut`` when captures had more frames
-        than the fewest.
+        than the fewest; ``fitted_geometry`` when captures' geometry was fitted to their own frames
+        (which ones, and what is not computed for them: the bias of their strata and the effects of
+        :data:`MEASURED_ONLY`, which are then listed in ``skipped`` too when every fit capture is fitted).
     result : DiagnosisResult
     """
     t0 = time.perf_counter()
@@ -292,18 +301,26 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
     fit_ids, held_ids, rule = split_captures([c.geometry for c in real], heldout, distances)
     by_id = {c.id: c for c in real}
     fit_real = [by_id[i] for i in fit_ids]
+    rois = dict(rois or {})
+    for c in real:                              # a capture's own mask is its region of interest
+        if c.mask is not None:
+            rois[c.id] = c.mask & rois[c.id] if c.id in rois else c.mask
+    fitted = [c.id for c in real if c.is_fitted]
     candidates, skipped = [], {}
     for n in names:
-        if usable_captures(n, fit_real):
+        if n in MEASURED_ONLY and all(c.is_fitted for c in fit_real):
+            skipped[n] = ("bias and scale need a measured distance; the fit captures' geometry is fitted to their "
+                          "own frames, which absorbs them")
+        elif usable_captures(n, fit_real):
             candidates.append(n)
         else:
             skipped[n] = f"its fit needs {' or '.join(NEEDS[n])} captures among the fit captures"
-    caps = [gap_capture_of(c, model, (rois or {}).get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id))
+    caps = [gap_capture_of(c, model, rois.get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id))
             for c in real]
     dg = Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
-                   CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed, rois),
+                   CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed, rois or None),
                    binning=binning or Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
-                   config=config or SelectionConfig(), progress=progress)
+                   config=config or SelectionConfig(), progress=progress, fitted_ids=fitted)
     res = dg.run(candidates)
     r = res.report
     report = {"format": FORMAT, "real": real_label, "split": {"fit": fit_ids, "heldout": held_ids},
@@ -323,6 +340,12 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
                       "frames": int(by_id[c.id].n_frames), "heldout": c.id in held_ids} for c in caps],
         "simulated_captures": dg.n_simulated, "seconds": time.perf_counter() - t0,
     })
+    if fitted:
+        report["fitted_geometry"] = {
+            "captures": fitted,
+            "not_computed": "bias_m of the strata these captures fall in, and the effects "
+                            f"{', '.join(n for n in MEASURED_ONLY if n in names)}: their geometry is a plane fitted "
+                            "to their own frames, which absorbs any bias and scale error"}
     if "frames_cut" in r:
         report["frames_cut"] = r["frames_cut"]
     return json_ready(report), res
@@ -357,7 +380,8 @@ def selftest_geometries(kind: str = "wall", width: int = 424, height: int = 240,
 
 def selftest_cases(effects, seed: int) -> list[dict]:
     """The selftest's cases: each effect alone at parameters drawn from its range (seeded), no effect,
-    and the two effects of :data:`SELFTEST_PAIR` together.
+    the two effects of :data:`SELFTEST_PAIR` together, and the static and the per-frame field of
+    :data:`SELFTEST_STATIC_PAIR` together.
 
     Returns
     -------
@@ -372,6 +396,8 @@ def selftest_cases(effects, seed: int) -> list[dict]:
     cases.append({"case": "none", "effects": []})
     pair = [(n, draw_params(n, np.random.default_rng([int(seed), 2, j]))) for j, n in enumerate(SELFTEST_PAIR)]
     cases.append({"case": "+".join(SELFTEST_PAIR), "effects": pair})
+    pair = [(n, draw_params(n, np.random.default_rng([int(seed), 3, j]))) for j, n in enumerate(SELFTEST_STATIC_PAIR)]
+    cases.append({"case": "+".join(SELFTEST_STATIC_PAIR), "effects": pair, "fit_each": True})
     return cases
 
 
@@ -383,7 +409,8 @@ def selftest_case(case: dict, seed: int, n_frames: int, width: int, height: int,
     before a background when an effect's fit needs them) plus the case's effects, drawn from generators
     the diagnosis never uses. Checks: one effect must be selected first, its parameters recovered within
     :func:`noise_model.analysis.effect_fits.within_tolerance` and the held-out gap shrink by >= 60 %; no effect:
-    no significant baseline gap and nothing selected; two effects: both selected, shrink >= 60 %.
+    no significant baseline gap and nothing selected; two effects: both selected, shrink >= 60 % (and with
+    ``case["fit_each"]``, each one's parameters within tolerance).
 
     Parameters
     ----------
@@ -444,6 +471,17 @@ def selftest_case(case: dict, seed: int, n_frames: int, width: int, height: int,
         checks["shrink_heldout_ge_0.6"] = row["shrink_heldout"] >= 0.6
     else:
         checks["all_found"] = all(n in selected for n, _ in case["effects"])
+        if case.get("fit_each"):
+            ok, errs = True, {}
+            for name, true in case["effects"]:
+                if name in row["fitted"]:
+                    o, e = within_tolerance(name, true, row["fitted"][name])
+                    ok &= o
+                    errs.update({f"{name}.{k}": {"error": v[0], "allowed": v[1]} for k, v in e.items()})
+                else:
+                    ok = False
+            row["param_errors"] = errs
+            checks["params_within_tolerance"] = bool(ok)
         checks["shrink_heldout_ge_0.6"] = row["shrink_heldout"] >= 0.6
     row["checks"] = checks
     row["passed"] = all(checks.values())

@@ -21,7 +21,7 @@ import numpy as np
 
 from .floor import Floor, GapResult, aggregate_by, compare, make_floor, shrink_test
 from .strata import Binning, GapCapture
-from .sums import capture_sums, check_depth_stack, frame_sampling, pool_sums
+from .sums import STATISTICS, capture_sums, check_depth_stack, frame_sampling, pool_sums
 
 __all__ = ["SelectionConfig", "DiagnosisResult", "Diagnosis", "model_key"]
 
@@ -118,12 +118,15 @@ class Diagnosis:
     config : SelectionConfig
     progress : callable, optional
         ``progress(message)`` after every simulated model.
+    fitted_ids : sequence of str, optional
+        Captures whose geometry was fitted to their own frames: the bias (``bias_m``) of every stratum
+        they contribute to is not computed (the plane fit absorbs any bias and scale error).
     """
 
     def __init__(self, captures: Sequence[GapCapture], real_depth, fit_ids, heldout_ids, simulate: Callable,
                  fit: Callable | None = None, *, binning: Binning = Binning(), n_splits: int = 64, n_boot: int = 64,
                  seed: int = 0, config: SelectionConfig = SelectionConfig(), progress: Callable | None = None,
-                 n_floor_frames: int = 8):
+                 n_floor_frames: int = 8, fitted_ids: Sequence[str] = ()):
         self.captures = {c.id: c for c in captures}
         if len(self.captures) != len(captures) or not captures:
             raise ValueError("captures must be non-empty with unique ids")
@@ -154,6 +157,7 @@ class Diagnosis:
         self.real_sampling = frame_sampling(F, seed, n_splits, n_boot)
         self.sim_sampling = frame_sampling(self.n_sim_frames, seed + 1, n_splits if self.single_frame else 0, n_boot)
         self.real_sums = {i: capture_sums(self.captures[i], d[:F], self.real_sampling) for i, d in frames.items()}
+        self.fitted_bins = {binning.bins(self.captures[i]) for i in fitted_ids if i in self.captures}
         self._sums: dict = {}
         self._floors: dict = {}
         self.n_simulated = 0
@@ -180,13 +184,18 @@ class Diagnosis:
         if key not in self._floors:
             caps = [self.captures[i] for i in ids]
             keys, real = pool_sums(caps, [self.real_sums[i] for i in ids], self.binning)
+            exclude = np.zeros((len(STATISTICS), len(keys)), dtype=bool)
+            exclude[STATISTICS.index("bias_m")] = [k[:2] in self.fitted_bins for k in keys]
+            why = ("needs a measured distance: the captures' geometry is fitted to their own frames, which "
+                   "absorbs bias and scale")
             if self.single_frame:
                 store = self._ensure([], ids)
                 _, fl = pool_sums(caps, [store[i] for i in ids], self.binning)
                 self._floors[key] = make_floor(keys, real, self.real_sampling, self.n_sim_frames, fl,
-                                               self.sim_sampling)
+                                               self.sim_sampling, exclude=exclude, exclude_reason=why)
             else:
-                self._floors[key] = make_floor(keys, real, self.real_sampling, self.n_sim_frames)
+                self._floors[key] = make_floor(keys, real, self.real_sampling, self.n_sim_frames, exclude=exclude,
+                                               exclude_reason=why)
         return self._floors[key]
 
     def evaluate(self, effects, ids) -> GapResult:
