@@ -150,6 +150,7 @@ def test_a_local_client_receives_the_map_within_two_seconds():
     finally:
         stop.set()
         server.close()
+    print(f"map messages received {max(v[0] for v in got.values()) * 1000:.0f} ms after subscribing")
     assert max(v[0] for v in got.values()) < RECEIVE_WITHIN_S
     store = typestore(2)
     gm = store.deserialize_cdr(got[MAP_TOPIC][2], GRID_MAP)
