@@ -12,16 +12,16 @@ path                       written
 
 Topics: :data:`MAP_TOPIC` (GridMap), :data:`GRID_TOPIC` (Grid of the same layers, which Foxglove
 and Lichtblick draw as a height field from its ``elevation`` field) and ``/tf`` (the map to each
-camera's frame at every frame). Everything is written under a temporary name beside the output and
-renamed onto it by :meth:`MapBagWriter.close`; :meth:`MapBagWriter.abort` leaves nothing behind.
+camera's frame at every frame). Everything is written in a temporary folder beside the output, named and
+registered by :mod:`elevmap.fileio` (so an interrupted run removes it, and a killed run's leftover is
+recognised), and moved onto the output by :meth:`MapBagWriter.close`; :meth:`MapBagWriter.abort` leaves
+nothing behind.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -79,15 +79,19 @@ class MapBagWriter:
         self.map_frame = str(map_frame)
         self.layers = tuple(layers)
         self.store = typestore(self.ros_version)
-        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=self.path.parent))
-        self._inner = self._tmpdir / (self.path.stem or "bag")
+        from ..fileio import new_temp_file, release_temp
+
+        self._tmpdir = new_temp_file(self.path, ".d")            # a registered temporary name, made a folder
+        self._tmpdir.unlink()
+        self._tmpdir.mkdir(mode=0o700)
+        self._release = release_temp
+        self._inner = self._tmpdir / self.path.name
         self.maps_written = 0
         self.transforms_written = 0
         try:
             if self.kind == "bag":
                 from rosbags.rosbag1 import Writer
 
-                self._inner = self._tmpdir / self.path.name
                 self.writer = Writer(self._inner)
             else:
                 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -99,7 +103,7 @@ class MapBagWriter:
             self._grid = self._connect(GRID_TOPIC, GRID)
             self._tf = self._connect(TF_TOPIC, "tf2_msgs/msg/TFMessage")
         except BaseException:
-            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            release_temp(self._tmpdir, remove=True)
             raise
 
     def _connect(self, topic, msgtype):
@@ -147,13 +151,16 @@ class MapBagWriter:
         try:
             self.writer.close()
             if self.kind == "db3":
+                if self.path.exists():
+                    raise ValueError(f"{self.path} appeared while the map was written; the bag is not moved there")
+                os.chmod(self._inner, new_file_mode(self.path, folder=True))
                 os.rename(self._inner, self.path)
             else:
                 src = self._inner if self.kind == "bag" else next(self._inner.glob("*.mcap"))
                 os.chmod(src, new_file_mode(self.path))
                 os.replace(src, self.path)
         finally:
-            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            self._release(self._tmpdir, remove=True)
         return self.path
 
     def abort(self) -> None:
@@ -162,7 +169,7 @@ class MapBagWriter:
             self.writer.close()
         except Exception:                                  # the bag is thrown away whatever state it is in
             pass
-        shutil.rmtree(self._tmpdir, ignore_errors=True)
+        self._release(self._tmpdir, remove=True)
 
     def __enter__(self):
         return self

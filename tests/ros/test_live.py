@@ -191,3 +191,16 @@ def test_the_server_listens_on_the_loopback_only():
         assert _listening_addresses(server.port) == ["0100007F"]          # 127.0.0.1, and nothing else
     finally:
         server.close()
+
+
+def test_cli_run_serves_foxglove_while_mapping(tmp_path, capsys):
+    from elevmap.cli import main
+    from rosbag_scenes import write_bag
+
+    bag = write_bag(tmp_path / "scene.bag", "bag")
+    assert main(["run", str(bag), "--foxglove", "0", "--map-rate", "5", "--no-progress"]) == 0
+    captured = capsys.readouterr()
+    assert "Foxglove: open a connection to ws://127.0.0.1:" in captured.err
+    assert '"foxglove": {' in captured.out and "8 frames mapped, 0 skipped" in captured.out
+    assert main(["run", str(bag), "--foxglove", "70000", "--no-progress"]) == 2
+    assert "port must be an integer in 0..65535" in capsys.readouterr().err
