@@ -193,6 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated candidate effects (default: all); with --selftest, the effects to hide")
     p.add_argument("--seed", type=int, default=0, help="seed of simulations, splits and bootstrap (default: 0)")
     p.add_argument("--selftest", action="store_true", help="hide each effect in simulated data and find it")
+    p.add_argument("--depth-bands", metavar="EDGES", default=None,
+                   help="split every capture into bands of true depth at these comma-separated edges [m] (a floor "
+                        "then shows where in depth and angle the gap lies)")
     p.add_argument("--jobs", type=int, default=1, help="processes for --selftest (default: 1)")
     p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single D435 frames of DIR (its regions "
                                                       "of known planes)")
@@ -569,9 +572,9 @@ def _cmd_gap(args) -> int:
     else:
         if not args.real:
             raise ValueError("give REAL_CAPTURES (a capture-set folder), --realdata DIR or --selftest")
-        report = run_gap(args.real if len(args.real) > 1 else args.real[0], json_path=args.json, rrd_path=args.rrd, heldout=args.heldout or "auto",
-                         effects=args.effects, seed=args.seed, show_progress=not args.no_progress,
-                         overwrite=args.overwrite)
+        report = run_gap(args.real if len(args.real) > 1 else args.real[0], json_path=args.json, rrd_path=args.rrd,
+                         heldout=args.heldout or "auto", effects=args.effects, seed=args.seed,
+                         show_progress=not args.no_progress, overwrite=args.overwrite, depth_bands=args.depth_bands)
     print(format_summary(report))
     if args.json or args.rrd:
         print("wrote " + " and ".join(p for p in (args.json, args.rrd) if p)

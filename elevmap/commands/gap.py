@@ -97,7 +97,7 @@ def load_capture_sets(real_dirs):
 
 def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=None, seed: int = 0,
             show_progress: bool = True, model: SensorModel = D435, config: G.SelectionConfig | None = None,
-            n_splits: int = 64, n_boot: int = 64, overwrite: bool = False) -> dict:
+            n_splits: int = 64, n_boot: int = 64, overwrite: bool = False, depth_bands=None) -> dict:
     """``elevmap gap REAL_CAPTURES [REAL_CAPTURES ...]``: diagnose capture sets, write the report (and recording).
 
     Parameters
@@ -120,28 +120,65 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     n_splits, n_boot : int
     overwrite : bool
         Replace existing output files (otherwise they are refused before any work).
+    depth_bands : sequence of float or comma-separated str, optional
+        Split every capture into bands of true depth at these edges [m]
+        (:func:`noise_model.analysis.diagnosis.split_by_depth`): a slanted plane (a floor) then fills one
+        stratum per band, at the band's median depth and incidence angle. Held-out ids may name the
+        captures before the split (all their bands are held out).
 
     Returns
     -------
     dict
         The report of :func:`noise_model.analysis.diagnosis.diagnose` plus ``mismatches`` (recordings
-        whose intrinsics differ from captures.json) and ``rrd`` when a recording was written.
+        whose intrinsics differ from captures.json), ``rrd`` when a recording was written and, with
+        ``depth_bands``, ``depth_bands`` (the edges and each part's capture).
     """
     dirs = [real_dir] if isinstance(real_dir, (str, os.PathLike)) else list(real_dir)
     jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite,
                            inputs=[Path(d) / "captures.json" for d in dirs]).values()
     sets, real = load_capture_sets(dirs)
+    distances = angles = parents = None
+    if depth_bands is not None:
+        edges = _parse_edges(depth_bands)
+        real, parents, distances, angles = G.split_by_depth(real, edges)
+        heldout = _expand_heldout(heldout, parents)
     with _model_bar(show_progress) as progress:
         report, res = diagnose(real, heldout=heldout, effects=effects, seed=seed, model=model, progress=progress,
                                real_label=", ".join(str(d) for d in dirs), config=config, n_splits=n_splits,
-                               n_boot=n_boot)
+                               n_boot=n_boot, distances=distances, angles=angles)
     report["mismatches"] = [m for cs in sets for m in cs.mismatches]
+    if parents is not None:
+        report["depth_bands"] = {"edges_m": list(edges), "parts": parents}
     if rp is not None:
         log_gap_recording(rp, report, res, real, model, seed)
         report["rrd"] = str(rp)
     if jp is not None:
         write_json_atomic(jp, report)
     return report
+
+
+def _parse_edges(depth_bands) -> list[float]:
+    """Depth band edges [m] from a comma-separated string or a sequence of numbers."""
+    items = depth_bands.split(",") if isinstance(depth_bands, str) else list(depth_bands)
+    try:
+        return [float(x) for x in items]
+    except (TypeError, ValueError):
+        raise ValueError(f"--depth-bands must be comma-separated metres, e.g. 0.6,0.8,1.0, got {depth_bands!r}") \
+            from None
+
+
+def _expand_heldout(heldout, parents: dict):
+    """Held-out ids that name captures before a depth split stand for all their parts."""
+    if heldout is None or not isinstance(heldout, (str, list, tuple)):
+        return heldout
+    if isinstance(heldout, str) and heldout.strip().lower() in ("", "auto", "none"):
+        return heldout
+    names = [x.strip() for x in heldout.split(",")] if isinstance(heldout, str) else [str(x) for x in heldout]
+    out = []
+    for n in names:
+        kids = [p for p, parent in parents.items() if parent == n]
+        out += kids if kids else [n]
+    return ",".join(out)
 
 
 # ---------------------------------------------------------------------------------------------

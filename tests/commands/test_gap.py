@@ -9,6 +9,7 @@ import os
 import numpy as np
 import pytest
 
+import noise_model as nm
 from noise_model import D435
 from noise_model.sim import effects as E
 from noise_model.analysis import diagnosis as G
@@ -405,3 +406,56 @@ def test_realdata_single_frames(realdata, tmp_path):
     lat = [w for w in rep["where"] if w["statistic"] == "lattice" and w["stratum"]["distance_m"] == [1.6, 1.7]
            and w["stratum"].get("region") == "interior"]
     assert lat and lat[0]["real"] > 0.5 and abs(lat[0]["sim"]) < 0.05
+
+
+# ---------------------------------------------------------------------------------------------
+# depth bands and direct measurements
+# ---------------------------------------------------------------------------------------------
+def test_split_by_depth_gives_one_capture_per_band():
+    from noise_model.analysis.capture_data import CaptureData, capture_geometry
+
+    cam = {"width": 106, "height": 60, "fx": 53.0, "fy": 53.0, "ppx": 52.5, "ppy": 29.5, "depth_scale": 0.001,
+           "baseline_m": 0.05}
+    # a floor-like plane pitched 60 deg: depth grows from the bottom rows to the top ones
+    a = math.radians(60.0)
+    entry = {"id": "floor", "geometry": "fitted",
+             "target": {"kind": "plane", "normal": [0.0, -math.sin(a), -math.cos(a)], "offset_m": 0.6}}
+    g = capture_geometry(cam, entry)
+    c = CaptureData.from_units(g, simulate_capture(g, 3, np.random.default_rng(0), D435), geometry_origin="fitted")
+    parts, parents, dist, ang = G.split_by_depth([c], [0.5, 1.0, 1.5, 3.0], min_pixels=50)
+    z, th = g.render()
+    assert [p.id for p in parts] == [f"floor_z{lo:.2f}-{hi:.2f}" for lo, hi in ((0.5, 1.0), (1.0, 1.5), (1.5, 3.0))
+                                     if ((z >= lo) & (z < hi)).sum() >= 50]
+    for p in parts:
+        lo, hi = (float(x) for x in p.id.split("_z")[1].split("-"))
+        assert parents[p.id] == "floor" and p.is_fitted and p.depth_m is c.depth_m
+        assert np.array_equal(p.mask, (z >= lo) & (z < hi))
+        assert lo <= dist[p.id] < hi and ang[p.id] == pytest.approx(np.degrees(np.median(th[p.mask])))
+    with pytest.raises(ValueError, match="increasing"):
+        G.split_by_depth([c], [1.0, 0.5])
+
+
+def test_direct_measurements_read_known_effects():
+    from noise_model.analysis.capture_data import CaptureData
+    from noise_model.analysis.diagnosis.direct import check_fitted, direct_measurements
+
+    cam = {"width": 424, "height": 240, "fx": 212.0, "fy": 212.0, "ppx": 211.5, "ppy": 119.5,
+           "depth_scale": 0.001, "baseline_m": 0.05}
+    effects = [E.static_pattern(sigma_px=0.06, length_px=5.0, seed=2), E.disparity_quantization(5),
+               E.invalid_band(3.0)]
+    caps = []
+    for i, d in enumerate((1.2, 1.6)):
+        g = CaptureGeometry.from_capture_set_entry(cam, {"id": f"w{i}", "target": {"kind": "wall", "distance_m": d}})
+        caps.append(CaptureData.from_units(g, simulate_capture(g, 10, np.random.default_rng([3, i]), D435, effects)))
+    out = direct_measurements(caps)
+    p = out["pooled"]
+    assert p["disparity_step_px"] == pytest.approx(1 / 32, rel=0.05)
+    assert 3.0 <= p["band_margin_px"] <= 4.0                          # first column: ceil(f B / z + margin)
+    assert p["static_sigma_d_px"] == pytest.approx(0.06, rel=0.15)
+    assert p["static_length_px"] == pytest.approx(5.0, rel=0.2)
+    sd = [float(nm.axial_sigma(np.array([d]), np.array([0.0]))[0]) * 10.6 / d ** 2 for d in (1.2, 1.6)]
+    assert p["temporal_sigma_d_px"] == pytest.approx(float(np.median(sd)), rel=0.15)
+    rows = check_fitted([{"name": "invalid_band", "params": {"margin_px": 3.4}},
+                         {"name": "static_pattern", "params": {"sigma_px": 0.1, "length_px": 5.0, "seed": 0}}], out)
+    by = {r["quantity"]: r for r in rows}
+    assert by["band_margin_px"]["agrees"] and not by["static_sigma_d_px"]["agrees"]

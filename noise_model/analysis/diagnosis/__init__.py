@@ -33,8 +33,8 @@ from .floor import (
 )
 from .run import (
     FORMAT, MAX_WHERE, SELFTEST_PAIR, SELFTEST_STATIC_PAIR, CaptureSimulator, EffectFitter, auto_heldout,
-    capture_rng, diagnose, gap_capture_of, parse_effect_names, plane_geometry, selftest_case, selftest_cases, selftest_geometries,
-    split_captures,
+    capture_rng, diagnose, gap_capture_of, parse_effect_names, plane_geometry, selftest_case, selftest_cases,
+    selftest_geometries, split_by_depth, split_captures,
 )
 from .selection import Diagnosis, DiagnosisResult, SelectionConfig, model_key
 from .strata import LOCAL_STRATA, MAX_RANGE_M, REGIONS, Binning, GapCapture, make_gap_capture
@@ -54,5 +54,5 @@ __all__ = [
     "FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "SELFTEST_STATIC_PAIR", "diagnose", "parse_effect_names",
     "split_captures", "auto_heldout",
     "capture_rng", "CaptureSimulator", "EffectFitter", "gap_capture_of", "plane_geometry", "selftest_geometries",
-    "selftest_cases", "selftest_case",
+    "selftest_cases", "selftest_case", "split_by_depth",
 ]

@@ -29,6 +29,7 @@ frame into a capture's geometry. Files, progress bars and recordings are the com
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import zlib
@@ -49,7 +50,7 @@ from .sums import STAT_UNITS
 
 __all__ = ["FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "SELFTEST_STATIC_PAIR", "MEASURED_ONLY", "parse_effect_names",
            "auto_heldout", "split_captures", "capture_rng", "CaptureSimulator", "EffectFitter", "gap_capture_of",
-           "diagnose", "plane_geometry", "selftest_geometries", "selftest_cases", "selftest_case"]
+           "diagnose", "plane_geometry", "selftest_geometries", "selftest_cases", "selftest_case", "split_by_depth"]
 
 #: The report's format.
 FORMAT = "d435-gap/1"
@@ -217,13 +218,65 @@ class EffectFitter:
 
 
 def gap_capture_of(data: CaptureData | CaptureGeometry, model: SensorModel = D435, roi=None,
-                   distance_m: float | None = None, kind: str | None = None) -> GapCapture:
+                   distance_m: float | None = None, kind: str | None = None,
+                   angle_deg: float | None = None) -> GapCapture:
     """The :class:`noise_model.analysis.diagnosis.GapCapture` of a capture's geometry (nominal render, regions)."""
     g = getattr(data, "geometry", data)
     z, th = g.render()
     return make_gap_capture(g.id, z, th, g.regions(model=model), g.K, g.baseline_m,
-                            g.distance_m if distance_m is None else distance_m, _incidence_deg(g.target),
+                            g.distance_m if distance_m is None else distance_m,
+                            _incidence_deg(g.target) if angle_deg is None else angle_deg,
                             kind or _kind_of(g), model, roi)
+
+
+def split_by_depth(captures: Sequence[CaptureData], edges_m: Sequence[float], min_pixels: int = 2000):
+    """Split each capture into depth bands: one capture per band of true depth, its mask the band's pixels.
+
+    A plane seen at a slant (a floor) spans a range of depths and incidence angles that one capture
+    puts in one stratum; split into bands, the diagnosis says at which depth and angle the gap lies.
+    Each part keeps the frames and the geometry (its simulation is the whole capture's), with the mask
+    = the capture's target pixels (its mask, else every pixel the target covers) whose true depth lies in
+    [edges_m[i], edges_m[i + 1]).
+
+    Parameters
+    ----------
+    captures : sequence of CaptureData
+    edges_m : sequence of float
+        Increasing band edges [m] (>= 2 values).
+    min_pixels : int
+        Bands with fewer target pixels are left out.
+
+    Returns
+    -------
+    parts : list of CaptureData
+        Ids ``<id>_z<lo>-<hi>`` (depths with 2 decimals).
+    parents : dict
+        Part id -> the capture id it came from.
+    distances, angles : dict
+        Part id -> the median true depth [m] and incidence angle [deg] over its mask (its strata bins).
+    """
+    e = np.asarray(edges_m, dtype=np.float64)
+    if e.ndim != 1 or e.size < 2 or not np.all(np.isfinite(e)) or not np.all(np.diff(e) > 0) or e[0] < 0:
+        raise ValueError(f"depth band edges must be >= 2 increasing non-negative metres, got {list(edges_m)!r}")
+    parts, parents, distances, angles = [], {}, {}, {}
+    for c in check_captures(captures):
+        z, th = c.geometry.render()
+        target = c.target_pixels()
+        for lo, hi in zip(e[:-1], e[1:]):
+            with np.errstate(invalid="ignore"):
+                m = target & (z >= lo) & (z < hi)
+            if int(m.sum()) < int(min_pixels):
+                continue
+            g = c.geometry
+            pid = f"{c.id}_z{lo:.2f}-{hi:.2f}"
+            part = CaptureData(dataclasses.replace(g, id=pid), c.depth_m, m, c.geometry_origin)
+            parts.append(part)
+            parents[pid] = c.id
+            distances[pid] = float(np.median(z[m]))
+            angles[pid] = float(np.degrees(np.median(th[m])))
+    if not parts:
+        raise ValueError(f"no depth band of {list(edges_m)!r} holds {min_pixels} target pixels of any capture")
+    return parts, parents, distances, angles
 
 
 # ---------------------------------------------------------------------------------------------
@@ -240,7 +293,7 @@ def _where(entries: list, limit: int = MAX_WHERE, pad: int = 20) -> list:
 def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed: int = 0, model: SensorModel = D435,
              progress: Callable[[str], None] | None = None, rois: dict | None = None, distances: dict | None = None,
              kinds: dict | None = None, real_label: str = "", config: SelectionConfig | None = None,
-             n_splits: int = 64, n_boot: int = 64, binning: Binning | None = None):
+             n_splits: int = 64, n_boot: int = 64, binning: Binning | None = None, angles: dict | None = None):
     """Run the diagnosis on real captures held in memory.
 
     Parameters
@@ -270,6 +323,9 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
         Half-splits of the noise floor and bootstrap replicates over frames.
     binning : Binning, optional
         Distance and angle bins of the strata.
+    angles : dict, optional
+        Per capture id: the incidence angle [deg] for its angle bin (default: the target's on the optical
+        axis; e.g. the median over a mask of a floor, whose incidence changes across the image).
 
     Returns
     -------
@@ -315,8 +371,8 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
             candidates.append(n)
         else:
             skipped[n] = f"its fit needs {' or '.join(NEEDS[n])} captures among the fit captures"
-    caps = [gap_capture_of(c, model, rois.get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id))
-            for c in real]
+    caps = [gap_capture_of(c, model, rois.get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id),
+                           (angles or {}).get(c.id)) for c in real]
     dg = Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
                    CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed, rois or None),
                    binning=binning or Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
