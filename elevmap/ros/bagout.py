@@ -24,8 +24,6 @@ import math
 import os
 from pathlib import Path
 
-import numpy as np
-
 from .convert import grid_map_message, grid_message, matrix_to_transform, time_message
 from .msgs import GRID, GRID_MAP, typestore
 

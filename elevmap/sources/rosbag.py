@@ -29,7 +29,6 @@ depth topic at all is a ``ValueError`` naming the file (and the topic).
 
 from __future__ import annotations
 
-import math
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path

@@ -173,9 +173,6 @@ def test_damaged_bags_and_bags_without_depth_are_clear_errors(tmp_path):
     with pytest.raises(ValueError, match=r"junk\.mcap: .*(truncated|corrupt)"):
         RosbagSource(junk)
 
-    def only_tf(b, write):
-        pass
-
     tf_only = tmp_path / "tf_only.bag"
     b = BagBuilder(1)
     from rosbags.rosbag1 import Writer
