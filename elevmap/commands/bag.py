@@ -58,7 +58,11 @@ def format_bag_info(info: dict) -> str:
 
 
 class _RateGate:
-    """True for the first stamp and then whenever ``1 / rate`` seconds have passed since the last True."""
+    """True for the first stamp and then whenever ``1 / rate`` seconds have passed since the last True.
+
+    Several cameras interleave their stamps, so a stamp a little before the last one is normal and
+    passes no gate; a jump back by more than a period (a source played again) starts over.
+    """
 
     def __init__(self, rate_hz: float):
         r = float(rate_hz)
@@ -68,7 +72,7 @@ class _RateGate:
         self.last = None
 
     def __call__(self, stamp: float) -> bool:
-        if self.last is None or stamp - self.last >= self.period - 1e-9 or stamp < self.last:
+        if self.last is None or stamp - self.last >= self.period - 1e-9 or stamp < self.last - self.period:
             self.last = stamp
             return True
         return False

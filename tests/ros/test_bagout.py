@@ -116,3 +116,13 @@ def test_cli_bag_info_says_what_is_missing(tmp_path, capsys):
     assert "transforms: map -> base_link -> camera_link -> camera_depth_optical_frame" in text
     assert "1 of 2 depth topic(s) can be mapped" in text
     assert (tmp_path / "info.json").is_file()
+
+
+def test_map_rate_gate_with_interleaved_cameras():
+    from elevmap.commands.bag import _RateGate
+
+    gate = _RateGate(2.0)
+    stamps = [0.0, -0.01, 0.1, 0.09, 0.5, 0.49, 0.99, 1.0, 0.6, -0.6]
+    assert [gate(s) for s in stamps] == [True, False, False, False, True, False, False, True, False, True]
+    with pytest.raises(ValueError, match="--map-rate must be a positive number"):
+        _RateGate(0.0)
