@@ -5,9 +5,10 @@ The output's name chooses the format and the message layout:
 =========================  ==================================================================
 path                       written
 =========================  ==================================================================
-``NAME.bag``               a ROS 1 bag; GridMap in the ROS 1 layout (header in GridMapInfo)
-``NAME.mcap``              one MCAP file (ROS 2 CDR, schemas embedded); ROS 2 layout
-``NAME`` (no suffix)       a ROS 2 bag folder (``metadata.yaml`` + ``NAME.db3``); ROS 2 layout
+``NAME.bag``               a ROS 1 bag, LZ4 chunks; GridMap in the ROS 1 layout (header in GridMapInfo)
+``NAME.mcap``              one MCAP file (ROS 2 CDR, schemas embedded, uncompressed); ROS 2 layout
+``NAME`` (no suffix)       a ROS 2 bag folder (``metadata.yaml`` + ``NAME.db3``, zstd per message); ROS 2
+                           layout
 =========================  ==================================================================
 
 Topics: :data:`MAP_TOPIC` (GridMap), :data:`GRID_TOPIC` (Grid of the same layers, which Foxglove
@@ -91,11 +92,14 @@ class MapBagWriter:
                 from rosbags.rosbag1 import Writer
 
                 self.writer = Writer(self._inner)
+                self.writer.set_compression(Writer.CompressionFormat.LZ4)     # unknown cells (NaN) pack well
             else:
-                from rosbags.rosbag2 import StoragePlugin, Writer
+                from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
                 plugin = StoragePlugin.MCAP if self.kind == "mcap" else StoragePlugin.SQLITE3
                 self.writer = Writer(self._inner, version=9, storage_plugin=plugin)
+                if self.kind == "db3":                # a bare .mcap has no metadata.yaml to declare it
+                    self.writer.set_compression(CompressionMode.MESSAGE, CompressionFormat.ZSTD)
             self.writer.open()
             self._map = self._connect(MAP_TOPIC, GRID_MAP)
             self._grid = self._connect(GRID_TOPIC, GRID)
