@@ -164,8 +164,9 @@ def write_bag(path, kind: str = "bag", *, depth: str = "16UC1", poses: str = "tf
 
     kind: "bag" (ROS 1), "db3" (ROS 2 folder, sqlite3), "mcap" (ROS 2 folder, MCAP, zstd per message),
     "bare_mcap" (one MCAP file). depth: "16UC1", "32FC1", "16UC1_be_padded" or "compressed".
-    poses: "tf" (/tf map -> base_link and /tf_static to the camera) or "odometry" (nav_msgs/Odometry
-    odom -> base_link with ODOM_COV, /tf_static only). cameras: (name, yaw deg) of each depth camera.
+    poses: "tf" (/tf map -> base_link and /tf_static to the camera), "odometry" (nav_msgs/Odometry
+    odom -> base_link with ODOM_COV, /tf_static only) or "pose_cov" (the same poses as
+    geometry_msgs/PoseWithCovarianceStamped, which names no child frame). cameras: (name, yaw deg) of each depth camera.
     extra(builder, write) may write more messages: write(topic, msgtype, stamp, msg).
     """
     path = Path(path)
@@ -185,6 +186,11 @@ def write_bag(path, kind: str = "bag", *, depth: str = "16UC1", poses: str = "tf
     while t <= T0 + FRAME_DT * (N_FRAMES - 1) + 0.1 + 1e-9:
         if poses == "tf":
             write("/tf", "tf2_msgs/msg/TFMessage", t, b.tf(t, "map", "base_link", T_map_base(t)))
+        elif poses == "pose_cov":
+            msg = b.t["geometry_msgs/msg/PoseWithCovarianceStamped"](
+                header=b.header(t, "odom"), pose=b.t["geometry_msgs/msg/PoseWithCovariance"](
+                    pose=b.pose(T_map_base(t)), covariance=ODOM_COV.ravel()))
+            write("/pose", "geometry_msgs/msg/PoseWithCovarianceStamped", t, msg)
         else:
             write("/odom", "nav_msgs/msg/Odometry", t, b.odometry(t, T_map_base(t), ODOM_COV))
         t += TF_DT

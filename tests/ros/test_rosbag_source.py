@@ -245,3 +245,17 @@ def test_a_realsense_sdk_db3_reads_as_the_sdk_plays_it(tmp_path, compress):
         np.testing.assert_array_equal(a.depth, b.depth)
         np.testing.assert_array_equal(a.K, b.K)
         assert (a.depth_scale, a.stamp) == (b.depth_scale, b.stamp)
+
+
+def test_pose_with_covariance_stamped_needs_the_base_frame(tmp_path):
+    path = write_bag(tmp_path / "pose.bag", "bag", poses="pose_cov")
+    with pytest.raises(ValueError, match=r"/pose \(geometry_msgs/msg/PoseWithCovarianceStamped\) does not name the "
+                                         r"robot's frame; give it as the base frame \(--base-frame\)"):
+        RosbagSource(path)
+    src = RosbagSource(path, base_frame="base_link")
+    assert src.pose_source == "odometry /pose" and src.map_frame == "odom"
+    f = list(src)[2]
+    s = frame_stamps()[2]
+    np.testing.assert_allclose(f.T_map_cam, T_map_base(s) @ T_base_cam(), atol=1e-9)
+    np.testing.assert_allclose(f.pose_cov, carry_pose_cov(ODOM_COV, T_map_base(s), T_base_cam()), rtol=1e-9,
+                               atol=1e-15)
