@@ -24,6 +24,19 @@ def scene_bag(tmp_path_factory):
     return write_bag(tmp_path_factory.mktemp("in") / "scene.bag", "bag")
 
 
+OUTPUTS = ("map.bag", "map.mcap", "map_db3")
+
+
+@pytest.fixture(scope="module")
+def mapped(tmp_path_factory, scene_bag):
+    """One mapping run of the scene feeding a writer of each kind at 5 Hz: (the map, the output folder, summaries)."""
+    folder = tmp_path_factory.mktemp("out")
+    src = RosbagSource(scene_bag)
+    outs = [BagOutput(folder / name, map_frame=src.map_frame, rate_hz=5.0) for name in OUTPUTS]
+    emap = run_mapping(src, CONFIG, show_progress=False, callbacks=outs)["map"]
+    return emap, folder, {name: out.finish(emap) for name, out in zip(OUTPUTS, outs)}
+
+
 def _read(path):
     """{topic: [(bag time ns, message)]} and the connections, decoded with the bag's own definitions."""
     out = {}
@@ -35,15 +48,11 @@ def _read(path):
 
 
 @pytest.mark.parametrize("name, ros1", [("map.bag", True), ("map.mcap", False), ("map_db3", False)])
-def test_grid_map_read_back_equals_to_grid_map(tmp_path, scene_bag, name, ros1):
-    src = RosbagSource(scene_bag)
-    out = BagOutput(tmp_path / name, map_frame=src.map_frame, rate_hz=5.0)
-    summary = run_mapping(src, CONFIG, show_progress=False, callbacks=[out])
-    emap = summary["map"]
-    written = out.finish(emap)
-    assert written["ros_version"] == (1 if ros1 else 2)
-    assert sorted(p.name for p in tmp_path.iterdir()) == [name]                 # nothing temporary left
-    msgs, conns = _read(tmp_path / name)
+def test_grid_map_read_back_equals_to_grid_map(mapped, name, ros1):
+    emap, folder, written = mapped
+    assert written[name]["ros_version"] == (1 if ros1 else 2)
+    assert sorted(p.name for p in folder.iterdir()) == sorted(OUTPUTS)          # nothing temporary left
+    msgs, conns = _read(folder / name)
     if ros1:
         assert conns[MAP_TOPIC].digest == GRID_MAP_ROS1_MD5
     # 5 Hz over 0.7 s of 10 Hz frames: at 0, 0.2, 0.4, 0.6 s, then the final map at 0.7 s
@@ -62,11 +71,8 @@ def test_grid_map_read_back_equals_to_grid_map(tmp_path, scene_bag, name, ros1):
     assert np.isnan(expected["data"]["elevation"]).any() and np.isfinite(expected["data"]["elevation"]).any()
 
 
-def test_grid_places_the_box_at_its_world_position(tmp_path, scene_bag):
-    src = RosbagSource(scene_bag)
-    out = BagOutput(tmp_path / "g.mcap", map_frame="map")
-    out.finish(run_mapping(src, CONFIG, show_progress=False, callbacks=[out])["map"])
-    msgs, _ = _read(tmp_path / "g.mcap")
+def test_grid_places_the_box_at_its_world_position(mapped):
+    msgs, _ = _read(mapped[1] / "map.mcap")
     grid = msgs[GRID_TOPIC][-1][1]
     names = [f.name for f in grid.fields]
     k = names.index("elevation")

@@ -120,8 +120,9 @@ def test_two_depth_topics_are_two_cameras_in_one_map(tmp_path):
     assert sorted(src.topics) == ["/front/depth/image_rect_raw", "/left/depth/image_rect_raw"]
     assert out["frames"] == 2 * N_FRAMES
     assert_floor_and_box(out["map"], yaws=(0.0, 25.0))
-    src1, out1 = map_bag(path, depth_topics=["/left/depth/image_rect_raw"])
-    assert out1["frames"] == N_FRAMES and list(src1.topics) == ["/left/depth/image_rect_raw"]
+    src1 = RosbagSource(path, depth_topics=["/left/depth/image_rect_raw"])
+    assert list(src1.topics) == ["/left/depth/image_rect_raw"]
+    assert {f.camera for f in src1} == {"/left/depth/image_rect_raw"} and src1.frames_read == N_FRAMES
 
 
 @pytest.mark.parametrize("encoding", ["32FC1", "16UC1_be_padded"])
