@@ -55,6 +55,13 @@ def time_message(seconds: float, ros_version: int = 2):
                                                                          nanosec=ns % 1_000_000_000)
 
 
+def _byte_array(data) -> np.ndarray:
+    """A message's ``uint8[]`` as a uint8 array: NumPy (rosbags), bytes or array.array (rclpy), or a list."""
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return np.frombuffer(data, dtype=np.uint8)
+    return np.asarray(data, dtype=np.uint8)
+
+
 def _check_image_size(height, width, where):
     if int(height) < 1 or int(width) < 1:
         raise ValueError(f"{where}: image size {width}x{height} is empty")
@@ -89,7 +96,7 @@ def image_to_depth(msg, where: str = "image") -> np.ndarray:
     row = w * dtype.itemsize
     if step < row:
         raise ValueError(f"{where}: step {step} bytes is shorter than a row of {w} {enc} pixels ({row} bytes)")
-    data = np.asarray(msg.data, dtype=np.uint8)
+    data = _byte_array(msg.data)
     if data.size < step * h:
         raise ValueError(f"{where}: image data has {data.size} bytes, {step} x {h} rows need {step * h}")
     rows = data[: step * h].reshape(h, step)[:, :row]
@@ -126,7 +133,7 @@ def compressed_depth_to_depth(msg, where: str = "image") -> np.ndarray:
         raise ValueError(f"{where}: compressedDepth codec {codec!r} is not supported (only png)")
     if enc not in ("16UC1", "32FC1"):
         raise ValueError(f"{where}: compressedDepth of encoding {enc!r}; expected 16UC1 or 32FC1")
-    raw = bytes(np.asarray(msg.data, dtype=np.uint8))
+    raw = _byte_array(msg.data).tobytes()
     if len(raw) < 12 + len(_PNG_SIGNATURE) or raw[12:12 + len(_PNG_SIGNATURE)] != _PNG_SIGNATURE:
         raise ValueError(f"{where}: compressedDepth data ({len(raw)} bytes) is not a 12-byte header and a PNG")
     _, quant_a, quant_b = struct.unpack("<iff", raw[:12])

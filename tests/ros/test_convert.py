@@ -197,3 +197,17 @@ def test_grid_message_places_each_cell_at_its_position():
         assert data[j, i, 0] == np.float32(z)
     assert np.isnan(data[1, 1, 0])
     assert msg.timestamp.sec == 7 and msg.timestamp.nanosec == 250_000_000
+
+
+def test_messages_with_bytes_data_as_rclpy_gives_them():
+    """rclpy holds uint8[] as bytes or array.array; the conversions read them as they read rosbags' arrays."""
+    import array
+
+    b = BagBuilder(2)
+    msg = b.image(0.0, "f", np.array([[0.5, 1.0]]), "16UC1")
+    for data in (bytes(msg.data), array.array("B", bytes(msg.data))):
+        msg.data = data
+        np.testing.assert_array_equal(cv.image_to_depth(msg), [[500, 1000]])
+    c = _compressed("16UC1; compressedDepth png", struct.pack("<iff", 0, 0, 0), np.array([[7, 8]], np.uint16))
+    c.data = bytes(c.data)
+    np.testing.assert_array_equal(cv.compressed_depth_to_depth(c), [[7, 8]])
