@@ -59,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
     for name, help_, desc in (
-            ("run", "map any source (camera, ROS or RealSense .bag/.db3/.mcap, .rrd, capture set, PNG folder, simulator)",
+            ("run", "map any source (camera, ROS/RealSense bags, .rrd, capture set, PNG folder, simulator)",
              "Map a source of D435 depth frames into a robot-centric elevation map.\n\n"),
             ("replay", "map a rerun recording (.rrd)",
              "Replay a rerun recording's depth frames through the mapper.\n\n")):
