@@ -339,6 +339,11 @@ def atomic_output(path, suffix: str | None = None):
         os.chmod(tmp, new_file_mode(path))
         os.replace(tmp, path)
         release_temp(tmp)
+    except OSError as exc:
+        release_temp(tmp, remove=True)
+        if exc.filename is None:          # a failed write (a full disk) names no file: name the output
+            raise OSError(exc.errno, exc.strerror, str(path)) from None
+        raise
     except BaseException:
         release_temp(tmp, remove=True)
         raise

@@ -23,7 +23,6 @@ import gc
 import os
 import re
 import sqlite3
-import tempfile
 import warnings
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -32,6 +31,7 @@ import numpy as np
 
 from noise_model.checks import check_intrinsics, check_positive_scalar
 
+from ..fileio import new_file_mode, new_temp_file, release_temp, remove_leftovers
 from ..frame import Frame
 from .base import FrameSource
 
@@ -491,8 +491,10 @@ def record_db3(path, depth_frames_u16, K, depth_scale: float = 0.001, fps: int =
     Returns
     -------
     Path
-        ``path``. The recording is written to a temporary ``.<name>.<random>.tmp.db3`` in the same folder
-        and renamed onto ``path`` only once it is complete, so ``path`` is never left half-written.
+        ``path``. The recording is written to a temporary ``.<name>.elevmap-tmp-<pid>-<random>.db3`` in the
+        same folder and renamed onto ``path`` only once it is complete, so ``path`` is never left
+        half-written (the leftover of a killed run is removed by the next call,
+        :func:`elevmap.fileio.remove_leftovers`).
     """
     path = Path(path)
     if path.suffix.lower() != ".db3":
@@ -521,9 +523,8 @@ def record_db3(path, depth_frames_u16, K, depth_scale: float = 0.001, fps: int =
     rs = import_pyrealsense2()
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.db3", dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    remove_leftovers(path)
+    tmp = new_temp_file(path, ".db3")   # named so that a killed run's leftover is recognised and removed
     tmp.unlink()  # the recorder creates the file itself
     try:
         dev = rs.software_device()
@@ -573,9 +574,12 @@ def record_db3(path, depth_frames_u16, K, depth_scale: float = 0.001, fps: int =
             raise RuntimeError(f"{path}: the recording just written does not open (pyrealsense2: {exc})") from None
         if path.exists() and not overwrite:
             raise ValueError(f"{path} appeared while recording; not replaced (the recording is discarded)")
+        os.chmod(tmp, new_file_mode(path))
         os.replace(tmp, path)
+        release_temp(tmp)
     except BaseException:
-        for p in (tmp, Path(str(tmp) + "-journal"), Path(str(tmp) + "-wal"), Path(str(tmp) + "-shm")):
+        release_temp(tmp, remove=True)
+        for p in (Path(str(tmp) + "-journal"), Path(str(tmp) + "-wal"), Path(str(tmp) + "-shm")):
             try:
                 p.unlink()
             except FileNotFoundError:

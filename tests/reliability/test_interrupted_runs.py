@@ -23,9 +23,13 @@ from elevmap.fileio import TEMP_TAG
 DEADLINE_S = 240.0
 
 
+#: compare's cache of rendered walks (beside its report): neither an output nor a temporary.
+CACHE = "elevmap-compare-work"
+
+
 def tree(folder: Path) -> dict[str, str]:
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+            for p in sorted(folder.rglob("*")) if p.is_file() and CACHE not in p.relative_to(folder).parts}
 
 
 def temporaries(folder: Path) -> list[Path]:
@@ -125,7 +129,8 @@ def test_compare_interrupted(tmp_path):
     argv = ["compare", "--frames", "60", "--mappers", "paper,constant", "--json", "c.json", "--rrd", "c.rrd",
             "--overwrite"]
     check_signals(tmp_path, argv, [
-        (signal.SIGTERM, temp_holding("c.rrd", min_bytes=0)),
+        (signal.SIGINT, temp_holding("c.rrd", min_bytes=0)),
+        (signal.SIGTERM, temp_holding("c.rrd", min_bytes=100_000)),
         (signal.SIGKILL, temp_holding("c.rrd", min_bytes=200_000)),
     ], next_run=["compare", "--frames", "1", "--json", "c.json", "--rrd", "c.rrd"])
 
