@@ -180,7 +180,10 @@ class ElevationMap:
                 raise ValueError("horizontal_cov must be finite with non-negative variances (xx, yy)")
         if stamp is None:
             stamp = float(self.frames)
-        stamp = float(stamp)
+        try:
+            stamp = float(stamp)
+        except (TypeError, ValueError):
+            raise ValueError(f"stamp must be a finite number [s], got {stamp!r}") from None
         if not math.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp!r}")
         origin = None

@@ -90,7 +90,10 @@ class GridGeometry:
         the centre of the cell that contains ``centre_xy``. Either way the robot's cell is one of the
         middle cells, never near an edge.
         """
-        c = np.asarray(centre_xy, dtype=np.float64)
+        try:
+            c = np.asarray(centre_xy, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"centre_xy must be 2 finite numbers [m], got {centre_xy!r}") from None
         if c.shape != (2,) or not np.all(np.isfinite(c)):
             raise ValueError(f"centre_xy must be 2 finite numbers [m], got {centre_xy!r}")
         check_coordinates(c, "centre_xy")
