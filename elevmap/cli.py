@@ -132,41 +132,51 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("compare", help="one simulated walk through several mappers: error and calibration",
                        formatter_class=argparse.RawDescriptionHelpFormatter,
-                       description="Render one simulated walk (the paper's reference noise plus optional effects)\n"
-                                   "and feed the same frames to several mappers; score each final map against the\n"
-                                   "true terrain (RMSE, 95th percentile, NLL, 1/2-sigma coverage, mean sigma, step\n"
-                                   "edges and flat ground, known cells, time per frame), also over the cells every\n"
-                                   "mapper knows (common) and at equal coverage (matched: each mapper's most\n"
-                                   "confident cells, as many as the mapper that knows fewest). --reality stereo:\n"
-                                   "the physical D435 makes the walk's depth instead (no sim effects).\n\n"
-                                   "mappers: paper (the paper's model, full covariance propagation), constant\n"
-                                   "  (2 cm), quadratic (elevation_mapping_cupy: 0.05 z^2), anybotics_d435\n"
-                                   "  (ANYbotics' D435 preset), paper_capped (the paper's model with the per-frame\n"
-                                   "  information cap --cap)\n"
+                       description="Render one simulated walk and feed the same frames to several mappers; score\n"
+                                   "each final map against the true terrain (RMSE, 95th percentile, NLL, 1/2-sigma\n"
+                                   "coverage, mean sigma, the step-edge band and flat ground, known cells, time per\n"
+                                   "frame), also over the cells every mapper knows (common) and at equal coverage\n"
+                                   "(matched). --seeds N: seeds SEED..SEED+N-1, scores as medians [min, max].\n"
+                                   "--reality: reference (the paper's model plus --sim-effects), stereo (the\n"
+                                   "physical D435) or GAP.json (the reference plus a gap report's fitted effects).\n\n"
+                                   "mappers: paper (the paper's model, full covariance propagation), fitted (the\n"
+                                   "  model elevmap characterize fits on the paper's grid simulated with the same\n"
+                                   "  reality, cached in --work; or --fitted-model), disparity (sigma_d 0.08 px),\n"
+                                   "  quadratic (elevation_mapping_cupy: 0.05 z^2), anybotics_d435 (ANYbotics' D435\n"
+                                   "  preset), constant (2 cm), NAME_capped (NAME with the per-frame information cap\n"
+                                   "  --cap); default: all but the capped ones, and fitted_capped\n"
                                    "sim effects (noise_model.sim.effects), NAME[:KEY=VALUE[:KEY=VALUE]]\n"
                                    "comma-separated, or a gap report (elevmap gap --json PATH): its selected effects\n"
                                    "as fitted:\n")
     p.description_tail = _effects_help
     p.add_argument("--scene", default="stairs", help="stairs, boxes, slope, rough or demo (default: stairs)")
-    p.add_argument("--reality", choices=["reference", "stereo"], default="reference",
-                   help="what makes the walk's depth: reference (the paper's model plus --sim-effects; default) "
-                        "or stereo (the physical D435, no effects)")
+    p.add_argument("--reality", default="reference", metavar="reference|stereo|GAP.json",
+                   help="what makes the walk's depth: reference (the paper's model plus --sim-effects; default), "
+                        "stereo (the physical D435) or a gap report (the reference plus its fitted effects)")
     p.add_argument("--preset", default=None, metavar="NAME",
                    help="matcher preset of --reality stereo: default or high_accuracy (default: default)")
     p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
     p.add_argument("--sim-effects", default=None, metavar="NAMES|GAP.json",
                    help="effects added to the simulated depth, or a gap report's fitted effects")
     p.add_argument("--mappers", default=None, metavar="NAMES",
-                   help="comma-separated subset of paper, constant, quadratic, anybotics_d435, paper_capped")
+                   help="comma-separated subset of paper, fitted, disparity, quadratic, anybotics_d435, constant "
+                        "and NAME_capped")
     p.add_argument("--cap", type=float, default=None, metavar="N_EFF",
-                   help="information cap of paper_capped, points per cell and frame (default: 1)")
+                   help="information cap of the capped mappers, points per cell and frame (default: 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scene, noise and effects (default: 0)")
+    p.add_argument("--seeds", type=int, default=None, metavar="N",
+                   help="run seeds SEED..SEED+N-1 and report medians and spreads")
     p.add_argument("--size", default="424x240", help="depth mode WIDTHxHEIGHT (default 424x240)")
     p.add_argument("--max-variance", type=float, default=None, metavar="M2",
                    help="every mapper's variance ceiling [m^2] (default 1, elevation_mapping_cupy's; "
                         "the map's own default is 0.04)")
+    p.add_argument("--work", metavar="DIR", default=None,
+                   help="work folder caching the rendered walks and the fitted model (default: none for the "
+                        "walks, elevmap-compare-work beside the --json report for the fitted model)")
+    p.add_argument("--fitted-model", metavar="PATH", default=None,
+                   help="the fitted mapper's model file (elevmap characterize --model) instead of fitting one")
     p.add_argument("--json", metavar="PATH", help="the report (required)")
-    p.add_argument("--rrd", metavar="PATH", help="rerun recording: the maps side by side, error maps")
+    p.add_argument("--rrd", metavar="PATH", help="rerun recording: the maps side by side, error maps (one seed)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -525,29 +535,48 @@ def _cmd_validate(args) -> int:
 
 
 def _cmd_compare(args) -> int:
-    from .commands.compare import COMPARE_MAX_VARIANCE, DEFAULT_CAP, format_table, json_ready, run_compare
+    from pathlib import Path
+
+    from .commands.compare import COMPARE_MAX_VARIANCE, DEFAULT_CAP, json_ready, run_compare
+    from .commands.compare_output import format_table
     from .fileio import write_json_atomic
 
     if not args.json:
         raise ValueError("--json PATH is required (the report)")
-    _check_outputs({"--json": args.json, "--rrd": args.rrd}, args.overwrite, inputs=[args.sim_effects])
+    gap = [args.reality] if args.reality.lower().endswith(".json") else []
+    _check_outputs({"--json": args.json, "--rrd": args.rrd}, args.overwrite,
+                   inputs=[args.sim_effects, args.fitted_model] + gap)
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
+    if args.seeds is not None and args.seeds < 1:
+        raise ValueError("--seeds must be >= 1")
+    if args.seeds is not None and args.rrd:
+        raise ValueError("--rrd records one seed: leave out --seeds")
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise ValueError(f"--size must be WIDTHxHEIGHT, got {args.size!r}") from None
     if args.preset is not None and args.reality != "stereo":
         raise ValueError("--preset goes with --reality stereo")
-    report = run_compare(args.scene, args.frames, seed=args.seed, sim_effects=args.sim_effects,
-                         mappers=args.mappers, cap=DEFAULT_CAP if args.cap is None else args.cap, width=width,
-                         height=height, rrd_path=args.rrd, show_progress=not args.no_progress,
-                         max_variance=COMPARE_MAX_VARIANCE if args.max_variance is None else args.max_variance,
-                         reality=args.reality, preset=args.preset or "default")
-    report = json_ready(report)
+    fit_dir = Path(args.json).resolve().parent / "elevmap-compare-work"
+    kw = dict(sim_effects=args.sim_effects, mappers=args.mappers, cap=DEFAULT_CAP if args.cap is None else args.cap,
+              width=width, height=height, show_progress=not args.no_progress,
+              max_variance=COMPARE_MAX_VARIANCE if args.max_variance is None else args.max_variance,
+              reality=args.reality, preset=args.preset or "default", work_dir=args.work, fitted_model=args.fitted_model,
+              fit_dir=fit_dir)
+    if args.seeds is None:
+        report = json_ready(run_compare(args.scene, args.frames, seed=args.seed, rrd_path=args.rrd, **kw))
+        text = format_table(report)
+    else:
+        from .commands.compare_seeds import format_seeds_table, run_compare_seeds
+
+        report = json_ready(run_compare_seeds(args.scene, args.frames, seeds=range(args.seed, args.seed + args.seeds),
+                                              on_run=lambda r: print(format_table(json_ready(r)), flush=True), **kw))
+        text = format_seeds_table(report)
     write_json_atomic(args.json, report)
-    print(format_table(report))
-    print(f"wrote {args.json}" + (f" and {args.rrd}; {_open_hint(args.rrd)}" if args.rrd else ""))
+    print(text)
+    print(f"wrote {args.json}" + (f" and {args.rrd}; {_open_hint(args.rrd)}" if args.rrd else "")
+          + (f" (work folder {args.work})" if args.work else ""))
     return 0
 
 

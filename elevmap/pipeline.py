@@ -19,7 +19,7 @@ from .map.fusion import FusionParams
 from .map.settings import check_bool, check_coordinates, check_int, check_map_memory, check_real
 from .mapper import Camera, Mapper
 
-__all__ = ["MappingConfig", "run_mapping", "map_error"]
+__all__ = ["MappingConfig", "run_mapping", "map_error", "edge_band"]
 
 
 @dataclass(frozen=True)
@@ -97,35 +97,24 @@ EDGE_JUMP_M = 0.05
 EDGE_BAND_CELLS = 2
 
 
-def map_error(emap: ElevationMap, truth_height) -> dict:
-    """The map against the true terrain at the centres of its known cells.
-
-    Cells within ``EDGE_BAND_CELLS`` of a step edge (a truth jump above ``EDGE_JUMP_M`` between
-    neighbouring cell centres) are scored apart from flat cells: there a cell holds both levels
-    while its centre has one, so their errors measure edge sharpness, not the noise model.
+def edge_band(truth) -> np.ndarray:
+    """The cells within ``EDGE_BAND_CELLS`` (4-connected steps) of a step edge of the true terrain.
 
     Parameters
     ----------
-    truth_height : callable
-        xy (M, 2) [m] -> true height (M,) [m], map frame.
+    truth : ndarray, shape (H, W) [m]
+        The true height at the cell centres.
 
     Returns
     -------
-    dict
-        rmse_m, median_abs_m, p95_abs_m, mean_error_m (bias), coverage_1sigma, coverage_2sigma,
-        nll (mean negative log-likelihood), known_cells; flat_rmse_m, flat_coverage_2sigma,
-        edge_rmse_m, edge_cells (the edge band).
+    ndarray of bool, shape (H, W)
+        True where a cell or a cell up to ``EDGE_BAND_CELLS`` away has a 4-neighbour whose true height
+        differs by more than ``EDGE_JUMP_M``.
     """
-    h, v = emap.layer("elevation"), emap.layer("variance")
-    known = emap.is_known()
-    keys = ("rmse_m", "median_abs_m", "p95_abs_m", "mean_error_m", "coverage_1sigma", "coverage_2sigma", "nll",
-            "flat_rmse_m", "flat_coverage_2sigma", "edge_rmse_m")
-    if not known.any():
-        return {**{k: math.nan for k in keys}, "known_cells": 0, "edge_cells": 0}
-    xs, ys = emap.cell_centres()
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    truth = np.asarray(truth_height(np.column_stack([X.ravel(), Y.ravel()])), dtype=np.float64).reshape(h.shape)
-    jump = np.zeros(h.shape, dtype=bool)
+    truth = np.asarray(truth, dtype=np.float64)
+    if truth.ndim != 2:
+        raise ValueError(f"truth must be a 2-D grid of heights, got shape {truth.shape}")
+    jump = np.zeros(truth.shape, dtype=bool)
     dx = np.abs(np.diff(truth, axis=0)) > EDGE_JUMP_M
     dy = np.abs(np.diff(truth, axis=1)) > EDGE_JUMP_M
     jump[:-1] |= dx
@@ -140,21 +129,60 @@ def map_error(emap: ElevationMap, truth_height) -> dict:
         grown[:, 1:] |= band[:, :-1]
         grown[:, :-1] |= band[:, 1:]
         band = grown
+    return band
+
+
+def map_error(emap: ElevationMap, truth_height) -> dict:
+    """The map against the true terrain at the centres of its known cells.
+
+    Cells within ``EDGE_BAND_CELLS`` of a step edge (a truth jump above ``EDGE_JUMP_M`` between
+    neighbouring cell centres, :func:`edge_band`) are scored apart from flat cells: there a cell holds
+    both levels while its centre has one, so their errors measure edge sharpness, not the noise model.
+
+    Parameters
+    ----------
+    truth_height : callable
+        xy (M, 2) [m] -> true height (M,) [m], map frame.
+
+    Returns
+    -------
+    dict
+        rmse_m, median_abs_m, p95_abs_m, mean_error_m (bias), coverage_1sigma, coverage_2sigma,
+        nll (mean negative log-likelihood), known_cells; flat_rmse_m, flat_coverage_2sigma,
+        edge_rmse_m, edge_mean_error_m, edge_coverage_1sigma, edge_coverage_2sigma, edge_nll,
+        edge_cells (the known cells of the edge band).
+    """
+    h, v = emap.layer("elevation"), emap.layer("variance")
+    known = emap.is_known()
+    keys = ("rmse_m", "median_abs_m", "p95_abs_m", "mean_error_m", "coverage_1sigma", "coverage_2sigma", "nll",
+            "flat_rmse_m", "flat_coverage_2sigma", "edge_rmse_m", "edge_mean_error_m", "edge_coverage_1sigma",
+            "edge_coverage_2sigma", "edge_nll")
+    if not known.any():
+        return {**{k: math.nan for k in keys}, "known_cells": 0, "edge_cells": 0}
+    xs, ys = emap.cell_centres()
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    truth = np.asarray(truth_height(np.column_stack([X.ravel(), Y.ravel()])), dtype=np.float64).reshape(h.shape)
+    band = edge_band(truth)
     err = (h - truth)[known]
     var = v[known]
     z = np.abs(err) / np.sqrt(var)
+    nll = 0.5 * np.log(2 * np.pi * var) + 0.5 * err ** 2 / var
     edge = band[known]
 
     def rmse(mask):
         return float(np.sqrt(np.mean(err[mask] ** 2))) if mask.any() else math.nan
 
+    def mean(a, mask):
+        return float(np.mean(a[mask])) if mask.any() else math.nan
+
     return {"rmse_m": rmse(np.ones_like(edge)), "median_abs_m": float(np.median(np.abs(err))),
             "p95_abs_m": float(np.percentile(np.abs(err), 95)), "mean_error_m": float(np.mean(err)),
             "coverage_1sigma": float(np.mean(z <= 1.0)), "coverage_2sigma": float(np.mean(z <= 2.0)),
-            "nll": float(np.mean(0.5 * np.log(2 * np.pi * var) + 0.5 * err ** 2 / var)),
-            "flat_rmse_m": rmse(~edge),
-            "flat_coverage_2sigma": float(np.mean(z[~edge] <= 2.0)) if (~edge).any() else math.nan,
-            "edge_rmse_m": rmse(edge), "known_cells": int(known.sum()), "edge_cells": int(edge.sum())}
+            "nll": float(np.mean(nll)),
+            "flat_rmse_m": rmse(~edge), "flat_coverage_2sigma": mean(z <= 2.0, ~edge),
+            "edge_rmse_m": rmse(edge), "edge_mean_error_m": mean(err, edge),
+            "edge_coverage_1sigma": mean(z <= 1.0, edge), "edge_coverage_2sigma": mean(z <= 2.0, edge),
+            "edge_nll": mean(nll, edge), "known_cells": int(known.sum()), "edge_cells": int(edge.sum())}
 
 
 def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=None, spawn: bool = False,

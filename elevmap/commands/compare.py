@@ -1,46 +1,60 @@
 """``elevmap compare``: one simulated walk, the same frames through several mappers, scored against the truth.
 
-Does the paper's noise model make the map better, and can its variances be trusted? A simulated D435
-walks through a scene (:class:`elevmap.sources.simulated.SimulatedWalk`). Its reality is either the
-reference simulation of the paper's model, plus optional effects of :mod:`noise_model.sim.effects` that
-make it harder than the model (``reality="reference"``, the default), or the physical D435 of
-:mod:`noise_model.sim.stereo` (``reality="stereo"``: projector, infrared pair and D4 matcher, a noise
-nobody wrote as a formula; it takes no effects). The frames are rendered once and fed, unchanged, to
-each mapper:
+Does the noise model make the map better, and can its variances be trusted? A simulated D435 walks
+through a scene (:class:`elevmap.sources.simulated.SimulatedWalk`). Its reality is one of:
+
+* ``"reference"`` (the default): the reference simulation of the paper's model, plus optional effects of
+  :mod:`noise_model.sim.effects` that make it harder than the model (``sim_effects``);
+* ``"stereo"``: the physical D435 of :mod:`noise_model.sim.stereo` (projector, infrared pair and D4
+  matcher, a noise nobody wrote as a formula; it takes no effects);
+* a gap report ``GAP.json`` (``elevmap gap --json``): the reference simulation plus the effects the gap
+  diagnosis selected, as fitted.
+
+The frames are rendered once and fed, unchanged, to each mapper:
 
 * ``paper``: the paper's model with full covariance propagation (``Camera`` without a
   ``variance_model``: the numba kernel);
-* ``constant``: one isotropic sigma for every point, 2 cm (:func:`noise_model.alternatives.constant`);
+* ``fitted``: the model ``elevmap characterize`` fits on the paper's grid of captures simulated with the
+  same reality (:mod:`elevmap.commands.compare_work`), or a model file the caller gives: the workflow of
+  a user with their own camera;
+* ``disparity``: the disparity family at sigma_d = :data:`DISPARITY_SIGMA_PX` px, Intel's typical
+  subpixel RMS (``D435.with_disparity``);
 * ``quadratic``: elevation_mapping_cupy's variance = 0.05 z^2 (:func:`noise_model.alternatives.quadratic`);
 * ``anybotics_d435``: ANYbotics' D435 preset (:func:`noise_model.alternatives.anybotics_d435`);
-* ``paper_capped``: the paper's model with the per-frame information cap
-  ``FusionParams(max_points_per_frame=cap)`` (default :data:`DEFAULT_CAP` = 1).
+* ``constant``: one isotropic sigma for every point, 2 cm (:func:`noise_model.alternatives.constant`);
+* ``<name>_capped`` (``fitted_capped``, ``paper_capped``, ...): that mapper with the per-frame
+  information cap ``FusionParams(max_points_per_frame=cap)`` (default :data:`DEFAULT_CAP` = 1).
 
 Every mapper has the same map settings (:class:`elevmap.pipeline.MappingConfig`: 8 m at 0.04 m,
-visibility clean-up, re-centred on the camera every frame); ``paper_capped`` differs from ``paper``
-only in the cap. At the end of the walk each map is scored by :func:`elevmap.pipeline.map_error`
-against the true height at the centres of its known cells, plus the mean sigma over its known cells
-(sharpness), the known-cell fraction and the median time per frame (``Mapper.integrate``: noise
-model + fusion + clean-up; the alternatives' time includes the paper's kernel, which still
-deprojects the points, plus their NumPy hook; frames go to the mappers interleaved, so a busy
-machine slows them alike). Mappers know different cells, so the same scores are also given over the
-cells known to *all* mappers (``common``) and at equal coverage (``matched``: each mapper's N known
-cells of smallest variance, N the fewest known cells of any mapper; one point of a sparsification
-curve). Every mapper runs with the variance ceiling :data:`COMPARE_MAX_VARIANCE` (elevation_mapping_cupy's
-1 m^2) unless the caller sets another: the map's default ceiling would take a pessimistic model's far
-cells away and score it on its near cells only.
+visibility clean-up, re-centred on the camera every frame); a capped mapper differs from its base only
+in the cap. At the end of the walk each map is scored by :func:`elevmap.pipeline.map_error` against the
+true height at the centres of its known cells, plus the mean sigma over its known cells (sharpness), the
+known-cell fraction, the step-edge band's scores (the cells within two cells of a step: error, coverage,
+NLL, and the fraction of the band's seen cells the mapper knows) and the median time per frame
+(``Mapper.integrate``: noise model + fusion + clean-up; the alternatives' time includes the paper's
+kernel, which still deprojects the points, plus their NumPy hook; frames go to the mappers interleaved,
+so a busy machine slows them alike). Mappers know different cells, so the same scores are also given
+over the cells known to *all* mappers (``common``) and at equal coverage (``matched``: each mapper's N
+known cells of smallest variance, N the fewest known cells of any mapper; one point of a
+sparsification curve). Every mapper runs with the variance ceiling :data:`COMPARE_MAX_VARIANCE`
+(elevation_mapping_cupy's 1 m^2) unless the caller sets another: the map's default ceiling would take a
+pessimistic model's far cells away and score it on its near cells only. Several seeds:
+:mod:`elevmap.commands.compare_seeds`.
 
 Report (JSON, NaN written as null)::
 
     {"scene": str, "frames": int, "seed": int, "width": int, "height": int,
-     "reality": "reference" | "stereo", "preset": str | null (the stereo matcher's preset),
+     "reality": "reference" | "stereo" | "gap", "gap_report": str | null, "preset": str | null,
      "sim_effects": [{"name": str, "params": {...}}, ...], "cap": float,
      "map": {"length_m", "resolution_m", "visibility_cleanup", "follow", "fusion": {...}},
-     "frames_digest": sha256 hex,
+     "frames_digest": sha256 hex, "frames_cached": bool,
      "mappers": {name: {"rmse_m", "p95_abs_m", "nll", "coverage_1sigma", "coverage_2sigma",
                         "mean_sigma_m", "edge_rmse_m", "flat_rmse_m", "known_fraction", "ms_per_frame",
                         "median_abs_m", "mean_error_m", "flat_coverage_2sigma", "known_cells",
-                        "edge_cells", "ms_per_frame_p95", "frames_digest", "model": {...}}, ...},
+                        "edge_cells", "edge_coverage_1sigma", "edge_coverage_2sigma", "edge_nll",
+                        "edge_mean_error_m", "edge_known_fraction", "ms_per_frame_p95", "frames_digest",
+                        "model": {...}}, ...},
+     "edge_band_cells": int (the band's cells some mapper knows),
      "common": {"cells": int, "mappers": {name: {"rmse_m", "p95_abs_m", "nll", "coverage_1sigma",
                                                  "coverage_2sigma", "mean_sigma_m"}}},
      "matched": {"cells": int, "mappers": {name: {same keys as common}}},
@@ -49,21 +63,7 @@ Report (JSON, NaN written as null)::
 Units: metres, square metres for variances, milliseconds; coverages are fractions in [0, 1]; ``nll``
 is the mean Gaussian negative log-likelihood of the true height under each cell's (height,
 variance), in nats. ``frames_digest`` is a SHA-256 over every frame's depth, pose and pose covariance
-as each mapper received them: equal for all mappers.
-
-Recording (``rrd_path``; entity paths)::
-
-    maps                        ViewCoordinates z up
-    maps/truth/elevation        the true terrain over the final map's cells (mesh, coloured by height)
-    maps/<mapper>/elevation     each final map, coloured by height (hidden at start)
-    maps/<mapper>/error         each final map, coloured by its signed error (blue below, red above
-                                the truth, +-ERROR_COLOR_RANGE_M)
-    maps/<mapper>/trail         the camera's path
-    errors/<mapper>             signed error image (map seen from above, +x up, +y left)
-    zscores/<mapper>            |error| / sigma image (0 to 4)
-    camera/depth                the depth frames (PNG-compressed)
-    plots/<metric>/<mapper>     RMSE, 2-sigma coverage and mean sigma over the frames
-    result                      the table
+as each mapper received them: equal for all mappers. The recording: :mod:`elevmap.commands.compare_output`.
 """
 
 from __future__ import annotations
@@ -75,9 +75,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import noise_model as nm
 from noise_model.alternatives import make_variance_model
 from noise_model.checks import check_positive_scalar
-from noise_model.reporting import check_names
 from noise_model.sim.effects import EFFECTS, Effect, make_effect
 
 from ..map.elevation_map import ElevationMap
@@ -85,26 +85,32 @@ from ..frame import Frame
 from ..fileio import check_outputs, json_ready
 from ..map.fusion import FusionParams
 from ..mapper import Camera, Mapper
-from ..pipeline import MappingConfig, map_error
+from ..pipeline import MappingConfig, edge_band, map_error
 
-__all__ = ["MAPPERS", "SCENES", "REALITIES", "DEFAULT_CAP", "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "run_compare",
-           "render_walk", "parse_effects", "effects_help", "parse_mappers", "format_table", "MapperSpec",
-           "mapper_specs", "json_ready", "frames_digest", "most_confident"]
+__all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "REALITIES", "DEFAULT_CAP", "DISPARITY_SIGMA_PX",
+           "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "run_compare", "render_walk", "parse_effects", "effects_help",
+           "parse_mappers", "parse_reality", "MapperSpec", "mapper_specs", "json_ready", "frames_digest",
+           "most_confident"]
 
-#: Mappers in report order.
-MAPPERS = ("paper", "constant", "quadratic", "anybotics_d435", "paper_capped")
+#: Mappers without a cap, in report order.
+BASE_MAPPERS = ("paper", "fitted", "disparity", "quadratic", "anybotics_d435", "constant")
+#: Every mapper name: the base mappers and each with the information cap (``<name>_capped``).
+ALL_MAPPERS = BASE_MAPPERS + tuple(f"{b}_capped" for b in BASE_MAPPERS)
+#: The default mappers of a comparison, in report order: every base mapper and the cap on the fitted one.
+MAPPERS = BASE_MAPPERS + ("fitted_capped",)
 #: Scenes of a comparison (those of :class:`elevmap.sources.simulated.SimulatedWalk`).
 SCENES = ("stairs", "boxes", "slope", "rough", "demo")
-#: Simulated realities: the reference simulation of the paper's model, or the physical D435.
+#: Simulated realities by name; a path ending in ``.json`` names a gap report (:func:`parse_reality`).
 REALITIES = ("reference", "stereo")
-#: The per-frame information cap of ``paper_capped``: a frame adds to a cell at most the information of
-#: n_eff = 1 average point. Why 1: (a) physics: with the D435's error correlation of about 3 px at
-#: 848 x 480, a 4 cm cell at 1 m holds about one independent sample per frame (docs/depth-effects.md,
-#: E9); (b) precedent: elevation_mapping_cupy averages a frame's points per cell, so that N points
-#: reduce the variance as much as one; (c) in comparisons the 2-sigma coverage rises as the cap goes
-#: down to 1 while the RMSE barely moves (docs/calibration.md). The map's own default is no cap
-#: (``FusionParams.max_points_per_frame = None``): its spreads measure the excess scatter the cap only
-#: guesses, and the cap pushes 1-sigma coverage out of its band (docs/calibration.md).
+#: sigma_d of the ``disparity`` mapper [px]: Intel's typical subpixel RMS of the D4 matcher on a
+#: textured target (librealsense's depth-quality notes), the one number a user finds without measuring.
+DISPARITY_SIGMA_PX = 0.08
+#: The per-frame information cap of the ``_capped`` mappers: a frame adds to a cell at most the
+#: information of n_eff = 1 average point. Why 1: (a) physics: with the D435's error correlation of
+#: about 3 px at 848 x 480, a 4 cm cell at 1 m holds about one independent sample per frame
+#: (docs/depth-effects.md, E9); (b) precedent: elevation_mapping_cupy averages a frame's points per cell,
+#: so that N points reduce the variance as much as one; (c) the comparisons of docs/calibration.md. The
+#: map's own default is no cap (``FusionParams.max_points_per_frame = None``; docs/calibration.md says why).
 DEFAULT_CAP = 1.0
 #: The variance ceiling ``FusionParams.max_variance`` [m^2] of every mapper of a comparison, unless the
 #: caller sets it: elevation_mapping_cupy's own (its ``parameter.py`` default). The map's default
@@ -114,13 +120,9 @@ DEFAULT_CAP = 1.0
 #: (quadratic's 0.05 z^2 per point exceeds 0.04 m^2 beyond 0.9 m, so it would be scored on its near cells
 #: only), while the paper mapper's own scores barely move (docs/calibration.md).
 COMPARE_MAX_VARIANCE = 1.0
-#: The keys every mapper's entry of the report has (the issue's schema).
+#: The keys every mapper's entry of the report has.
 REPORT_KEYS = ("rmse_m", "p95_abs_m", "nll", "coverage_1sigma", "coverage_2sigma", "mean_sigma_m", "edge_rmse_m",
-               "flat_rmse_m", "known_fraction", "ms_per_frame")
-#: Colour range of the signed error meshes and images [m].
-ERROR_COLOR_RANGE_M = 0.10
-#: Colour range of the z-score images |error| / sigma.
-ZSCORE_COLOR_RANGE = (0.0, 4.0)
+               "flat_rmse_m", "known_fraction", "ms_per_frame", "edge_coverage_2sigma", "edge_known_fraction")
 
 
 @dataclass(frozen=True)
@@ -131,25 +133,41 @@ class MapperSpec:
     ----------
     name : str
     variance_model : callable or None
-        The camera's ``variance_model`` hook (None: the paper's model, numba kernel).
+        The camera's ``variance_model`` hook (None: the noise model ``model`` through the numba kernel).
     fusion : FusionParams
     description : dict
         What the report says about it (model name, parameters, source, cap).
+    model : noise_model.SensorModel
+        The camera's sensor model (the paper's D435 unless fitted or of the disparity family).
     """
 
     name: str
     variance_model: object
     fusion: FusionParams
     description: dict
+    model: object = nm.D435
 
 
-def mapper_specs(names=MAPPERS, cap: float = DEFAULT_CAP, fusion: FusionParams | None = None) -> list[MapperSpec]:
-    """The mappers ``names`` with the map's fusion parameters ``fusion`` (``paper_capped`` adds ``cap``).
+def mapper_specs(names=MAPPERS, cap: float = DEFAULT_CAP, fusion: FusionParams | None = None,
+                 fitted_model=None, fitted_info: dict | None = None) -> list[MapperSpec]:
+    """The mappers ``names`` with the map's fusion parameters ``fusion`` (the capped ones add ``cap``).
+
+    Parameters
+    ----------
+    names : sequence of str
+        Names of :data:`ALL_MAPPERS`.
+    cap : float
+        n_eff of the capped mappers (>= 1).
+    fusion : FusionParams, optional
+    fitted_model : noise_model.SensorModel, optional
+        The model of ``fitted`` (required when it or ``fitted_capped`` is asked for).
+    fitted_info : dict, optional
+        Where it came from, for the report.
 
     Raises
     ------
     ValueError
-        Unknown mapper name, or a cap below 1.
+        Unknown mapper name, a cap below 1, or ``fitted`` without a model.
     """
     fusion = FusionParams() if fusion is None else fusion
     if not isinstance(fusion, FusionParams):
@@ -157,18 +175,32 @@ def mapper_specs(names=MAPPERS, cap: float = DEFAULT_CAP, fusion: FusionParams |
     cap = _check_cap(cap)
     out = []
     for name in names:
-        if name not in MAPPERS:
-            raise ValueError(f"unknown mapper {name!r}; mappers: {', '.join(MAPPERS)}")
-        if name in ("paper", "paper_capped"):
-            f = fusion if name == "paper" else _replace(fusion, max_points_per_frame=cap)
+        if name not in ALL_MAPPERS:
+            raise ValueError(f"unknown mapper {name!r}; mappers: {', '.join(ALL_MAPPERS)}")
+        base = name[: -len("_capped")] if name.endswith("_capped") else name
+        f = _replace(fusion, max_points_per_frame=cap) if name != base else fusion
+        vm, model = None, nm.D435
+        if base == "paper":
             desc = {"name": "paper", "source": "Ahn et al. 2019, full covariance propagation (noise_model kernel)",
-                    "params": {}, "max_points_per_frame": f.max_points_per_frame}
-            out.append(MapperSpec(name, None, f, desc))
+                    "params": {}}
+        elif base == "fitted":
+            if fitted_model is None:
+                raise ValueError("the fitted mapper needs a model: elevmap characterize's model file, or a work "
+                                 "folder to fit one in")
+            if not isinstance(fitted_model, nm.SensorModel):
+                raise ValueError("fitted_model must be a noise_model.SensorModel")
+            model = fitted_model
+            desc = {"name": "fitted", "source": "elevmap characterize on the paper's grid simulated with this reality",
+                    "params": fitted_model.to_dict(), **({"fit": fitted_info} if fitted_info else {})}
+        elif base == "disparity":
+            model = nm.D435.with_disparity(DISPARITY_SIGMA_PX)
+            desc = {"name": "disparity", "source": "disparity family, Intel's typical subpixel RMS",
+                    "params": {"sigma_d_px": DISPARITY_SIGMA_PX}}
         else:
-            vm = make_variance_model(name)
-            desc = {"name": vm.name, "source": vm.source, "params": dict(vm.params),
-                    "max_points_per_frame": fusion.max_points_per_frame}
-            out.append(MapperSpec(name, vm, fusion, desc))
+            vm = make_variance_model(base)
+            desc = {"name": vm.name, "source": vm.source, "params": dict(vm.params)}
+        desc["max_points_per_frame"] = f.max_points_per_frame
+        out.append(MapperSpec(name, vm, f, desc, model))
     return out
 
 
@@ -285,10 +317,62 @@ def parse_effects(spec) -> list[Effect]:
 
 
 def parse_mappers(spec) -> tuple[str, ...]:
-    """Mapper names from a comma-separated string or a sequence (None: all of :data:`MAPPERS`)."""
+    """Mapper names of :data:`ALL_MAPPERS` from a comma-separated string or a sequence (None: :data:`MAPPERS`)."""
+    from noise_model.reporting import check_names
+
     if spec is None:
         return MAPPERS
-    return tuple(check_names(spec, "--mappers", MAPPERS, "mapper"))
+    return tuple(check_names(spec, "--mappers", ALL_MAPPERS, "mapper"))
+
+
+def parse_reality(reality, sim_effects=None) -> dict:
+    """The walk's reality from ``--reality`` and ``--sim-effects``.
+
+    Parameters
+    ----------
+    reality : str
+        ``"reference"``, ``"stereo"``, or the path of a gap report (``*.json``): the reference simulation
+        plus the effects that report selected, as fitted.
+    sim_effects : str or sequence, optional
+        Effects added to the reference reality (:func:`parse_effects`); not with ``stereo`` or a gap report.
+
+    Returns
+    -------
+    dict
+        ``kind`` ("reference", "stereo" or "gap"), ``sensor`` ("reference" or "stereo"), ``effects`` (list of
+        Effect), ``gap_report`` (str or None), ``effects_digest`` (SHA-256 of the effects' names and
+        parameters, None without effects).
+
+    Raises
+    ------
+    ValueError
+        Unknown reality, an unreadable gap report, or effects where the reality takes none.
+    """
+    if not isinstance(reality, str):
+        raise ValueError(f"reality must be a string, got {reality!r}")
+    effects = parse_effects(sim_effects)
+    if reality.lower().endswith(".json"):
+        if effects:
+            raise ValueError("a gap report is the reality's effects already: give --sim-effects or a gap report "
+                             "as --reality, not both")
+        effects = parse_effects(reality)
+        kind, sensor, gap = "gap", "reference", reality
+    elif reality in REALITIES:
+        kind = sensor = reality
+        gap = None
+        if reality == "stereo" and effects:
+            raise ValueError("the stereo reality makes its own noise: it takes no sim effects")
+    else:
+        raise ValueError(f"unknown reality {reality!r}; realities: {', '.join(REALITIES)} or a gap report "
+                         "(elevmap gap --json PATH)")
+    digest = None
+    if effects:
+        import json
+
+        text = json.dumps([[e.name, {k: v for k, v in sorted(dict(e.params).items())}] for e in effects],
+                          default=float)
+        digest = hashlib.sha256(text.encode()).hexdigest()
+    return {"kind": kind, "sensor": sensor, "effects": effects, "gap_report": gap, "effects_digest": digest}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -296,8 +380,8 @@ def parse_mappers(spec) -> tuple[str, ...]:
 # ---------------------------------------------------------------------------------------------
 def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 0, effects=(),
                 width: int = 424, height: int = 240, show_progress: bool = False, reality: str = "reference",
-                preset: str = "default"):
-    """Render a simulated walk once.
+                preset: str = "default", work=None, reality_key: str | None = None):
+    """Render a simulated walk once (or read it from a work folder's cache).
 
     Parameters
     ----------
@@ -315,12 +399,18 @@ def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 
         The reference simulation of the paper's model, or the physical D435.
     preset : str
         Matcher preset of the physical D435.
+    work : elevmap.commands.compare_work.WorkDir, optional
+        Cache the frames there (keyed by ``reality_key``, the scene, seed, size and frames).
+    reality_key : str, optional
+        The reality's name in the cache (:func:`elevmap.commands.compare_work.reality_key`); required with
+        ``work``.
 
     Returns
     -------
     frames : list of Frame
     walk : SimulatedWalk
-        Its ``truth_height(xy)`` gives the true terrain [m].
+        Its ``truth_height(xy)`` gives the true terrain [m]; ``walk.frames_cached`` says whether the
+        frames came from the cache.
     """
     from tqdm import tqdm
 
@@ -340,21 +430,30 @@ def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 
     for e in effects:
         if not callable(e):
             raise ValueError(f"effects must be callables (noise_model.sim.effects), got {e!r}")
-    _check_reality(reality, effects)
+    if reality not in REALITIES:
+        raise ValueError(f"unknown sensor reality {reality!r}; realities: {', '.join(REALITIES)}")
+    if reality == "stereo" and effects:
+        raise ValueError("the stereo reality makes its own noise: it takes no sim effects")
     walk = SimulatedWalk(scene, n_frames=None if n_frames is None else int(n_frames), seed=int(seed),
                          width=int(width), height=int(height), effects=effects or None, sensor=reality,
                          preset=preset)
-    frames = list(tqdm(walk, total=len(walk), desc="rendering", unit="frame", disable=not show_progress))
-    if n_frames is not None and len(frames) < n_frames:
-        raise ValueError(f"the {scene} walk has only {len(frames)} frames, asked for {n_frames}")
+
+    def render():
+        frames = list(tqdm(walk, total=len(walk), desc="rendering", unit="frame", disable=not show_progress))
+        if n_frames is not None and len(frames) < n_frames:
+            raise ValueError(f"the {scene} walk has only {len(frames)} frames, asked for {n_frames}")
+        return frames
+
+    if work is None:
+        frames, walk.frames_cached = render(), False
+    else:
+        if not reality_key:
+            raise ValueError("a cached walk needs its reality's key")
+        params = {"reality": reality_key, "scene": scene, "seed": int(seed), "width": int(width),
+                  "height": int(height), "frames": None if n_frames is None else int(n_frames),
+                  "preset": preset if reality == "stereo" else None}
+        frames, walk.frames_cached = work.frames(params, render)
     return frames, walk
-
-
-def _check_reality(reality, effects) -> None:
-    if reality not in REALITIES:
-        raise ValueError(f"unknown reality {reality!r}; realities: {', '.join(REALITIES)}")
-    if reality == "stereo" and effects:
-        raise ValueError("the stereo reality makes its own noise: it takes no sim effects")
 
 
 def _digest_update(h, frame: Frame) -> None:
@@ -423,8 +522,23 @@ def _score(emap: ElevationMap, truth, times) -> dict:
            "known_fraction": emap.known_fraction(), "ms_per_frame": float(np.median(t)),
            "median_abs_m": err["median_abs_m"], "mean_error_m": err["mean_error_m"],
            "flat_coverage_2sigma": err["flat_coverage_2sigma"], "known_cells": err["known_cells"],
-           "edge_cells": err["edge_cells"], "ms_per_frame_p95": float(np.percentile(t, 95))}
+           "edge_cells": err["edge_cells"], "edge_coverage_1sigma": err["edge_coverage_1sigma"],
+           "edge_coverage_2sigma": err["edge_coverage_2sigma"], "edge_nll": err["edge_nll"],
+           "edge_mean_error_m": err["edge_mean_error_m"], "ms_per_frame_p95": float(np.percentile(t, 95))}
     return out
+
+
+def _edge_known_fractions(maps: dict, truth) -> tuple[int, dict]:
+    """The step-edge band's cells that some mapper knows (the band the walk saw), and per mapper the
+    fraction of them it knows."""
+    first = next(iter(maps.values()))
+    band = edge_band(_truth_grid(first, truth))
+    seen = np.zeros(band.shape, dtype=bool)
+    for m in maps.values():
+        seen |= m.is_known()
+    seen &= band
+    n = int(seen.sum())
+    return n, {name: (float((m.is_known() & seen).sum() / n) if n else math.nan) for name, m in maps.items()}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -467,7 +581,8 @@ def _map_frames(frames, specs, config: MappingConfig, *, nthreads=None, show_pro
         for run in runs[r:] + runs[:r]:
             if frame.camera not in run.mapper.cameras:
                 run.mapper.add_camera(Camera(frame.camera, frame.K, frame.width, frame.height,
-                                             depth_scale=frame.depth_scale, variance_model=run.spec.variance_model))
+                                             depth_scale=frame.depth_scale, model=run.spec.model,
+                                             variance_model=run.spec.variance_model))
             if config.follow:
                 run.emap.move_to(T[:2, 3])
             _digest_update(run.digest, frame)
@@ -483,7 +598,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
                 mappers=None, cap: float = DEFAULT_CAP, width: int = 424, height: int = 240,
                 config: MappingConfig | None = None, max_variance: float | None = COMPARE_MAX_VARIANCE,
                 rrd_path=None, show_progress: bool = True, nthreads: int | None = None, reality: str = "reference",
-                preset: str = "default") -> dict:
+                preset: str = "default", work_dir=None, fitted_model=None, fit_dir=None) -> dict:
     """One simulated walk, the same frames through several mappers, each scored against the truth.
 
     Parameters
@@ -495,11 +610,11 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     seed : int
         Seed of the scene, noise and effects.
     sim_effects : str or sequence of Effect or str, optional
-        Effects added to the simulated reality (see :func:`parse_effects`).
+        Effects added to the reference reality (see :func:`parse_effects`).
     mappers : str or sequence of str, optional
-        Subset of :data:`MAPPERS` (default all, in that order).
+        Names of :data:`ALL_MAPPERS` (default :data:`MAPPERS`, in that order).
     cap : float
-        The information cap n_eff of ``paper_capped`` (>= 1).
+        The information cap n_eff of the capped mappers (>= 1).
     width, height : int
         D435 depth mode [px] (default 424 x 240, the decimated stream ANYmal maps from).
     config : MappingConfig, optional
@@ -513,35 +628,57 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         Progress bars.
     nthreads : int, optional
         numba threads.
-    reality : {"reference", "stereo"}
-        What makes the walk's depth: the reference simulation of the paper's model (default), or the
-        physical D435 (no ``sim_effects`` then).
+    reality : str
+        ``"reference"`` (default), ``"stereo"`` (the physical D435, no ``sim_effects``) or a gap report's
+        path (:func:`parse_reality`).
     preset : str
         Matcher preset of the physical D435 ("default", "high_accuracy").
+    work_dir : path or WorkDir, optional
+        Work folder (:mod:`elevmap.commands.compare_work`): the walk's frames are cached there, and the
+        ``fitted`` mapper's model is characterised there when ``fitted_model`` is not given.
+    fitted_model : noise_model.SensorModel or path, optional
+        The ``fitted`` mapper's model (a model file of ``elevmap characterize``); default: fitted in
+        ``work_dir`` (or ``fit_dir``) on the paper's grid simulated with this reality.
+    fit_dir : path or WorkDir, optional
+        Work folder for the fitted model only (no frames cached), when ``work_dir`` is None.
 
     Returns
     -------
     dict
         The report (module docstring); NaN where a score is undefined (e.g. no step edges).
     """
+    from .compare_work import WorkDir, reality_key
+
     config = MappingConfig() if config is None else config
     if not isinstance(config, MappingConfig):
         raise ValueError("config must be an elevmap.pipeline.MappingConfig")
     if max_variance is not None:
         config = _replace(config, fusion=_replace(config.fusion, max_variance=_check_max_variance(max_variance)))
     names = parse_mappers(mappers)
-    specs = mapper_specs(names, cap, config.fusion)
-    effects = parse_effects(sim_effects)
-    _check_reality(reality, effects)
+    real = parse_reality(reality, sim_effects)
+    effects = real["effects"]
     if scene not in SCENES:
         raise ValueError(f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
+    work = None if work_dir is None else (work_dir if isinstance(work_dir, WorkDir) else WorkDir(work_dir))
+    key = reality_key(real["kind"], preset, real["effects_digest"])
+    fitted_info = None
+    if any(n.split("_capped")[0] == "fitted" for n in names):
+        fit_work = work if work is not None or fit_dir is None else (
+            fit_dir if isinstance(fit_dir, WorkDir) else WorkDir(fit_dir))
+        fitted_model, fitted_info = _fitted(fitted_model, fit_work, real, key, preset, width, height, show_progress)
+    specs = mapper_specs(names, cap, config.fusion, fitted_model, fitted_info)
     check_outputs({"rrd_path": rrd_path}, overwrite=True)       # the command line has refused existing files
     t0 = time.perf_counter()
-    frames, walk = render_walk(scene, n_frames, seed, effects, width, height, show_progress, reality, preset)
+    frames, walk = render_walk(scene, n_frames, seed, effects, width, height, show_progress, real["sensor"], preset,
+                               work=work, reality_key=key)
     render_ms = 1e3 * (time.perf_counter() - t0) / max(1, len(frames))
     truth = _CachedTruth(walk.truth_height)
     digest = frames_digest(frames)
-    logger = _CompareLogger(rrd_path, names, frames, show_progress) if rrd_path is not None else None
+    logger = None
+    if rrd_path is not None:
+        from .compare_output import CompareLogger
+
+        logger = CompareLogger(rrd_path, names, frames, show_progress)
     results, maps = {}, {}
     try:
         on_frame = None if logger is None else logger.frame_callback(truth)
@@ -556,17 +693,21 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
             score["model"] = run.spec.description
             results[run.spec.name] = score
             maps[run.spec.name] = run.emap
+        band_cells, band_known = _edge_known_fractions(maps, truth)
+        for name, frac in band_known.items():
+            results[name]["edge_known_fraction"] = frac
         common = _common_scores(maps, truth)
         matched = _matched_scores(maps, truth)
         report = {"scene": scene, "frames": len(frames), "seed": int(seed), "width": int(width),
-                  "height": int(height), "reality": reality, "preset": preset if reality == "stereo" else None,
+                  "height": int(height), "reality": real["kind"], "gap_report": real["gap_report"],
+                  "preset": preset if real["sensor"] == "stereo" else None,
                   "sim_effects": [{"name": e.name, "params": dict(e.params)} for e in effects],
                   "cap": _check_cap(cap),
                   "map": {"length_m": config.length_m, "resolution_m": config.resolution_m,
                           "visibility_cleanup": config.visibility_cleanup, "follow": config.follow,
                           "fusion": {k: getattr(config.fusion, k) for k in config.fusion.__dataclass_fields__}},
-                  "frames_digest": digest, "mappers": results, "common": common,
-                  "matched": matched,
+                  "frames_digest": digest, "frames_cached": bool(walk.frames_cached), "mappers": results,
+                  "edge_band_cells": band_cells, "common": common, "matched": matched,
                   "render_ms_per_frame": render_ms}
         if logger is not None:
             logger.final(maps, truth, walk, report)
@@ -578,6 +719,24 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         logger.close()
         report["rrd"] = str(rrd_path)
     return report
+
+
+def _fitted(fitted_model, work, real: dict, key: str, preset: str, width: int, height: int, show_progress: bool):
+    """The ``fitted`` mapper's model and its report entry: a given model (or model file), else the one
+    characterised in the work folder on the paper's grid simulated with this reality."""
+    if fitted_model is not None:
+        if isinstance(fitted_model, nm.SensorModel):
+            return fitted_model, {"model_path": None, "family": fitted_model.family}
+        model = nm.SensorModel.load(fitted_model)
+        return model, {"model_path": str(fitted_model), "family": model.family}
+    if work is None:
+        raise ValueError("the fitted mapper needs a model file (--fitted-model) or a work folder (--work) to "
+                         "characterise one in")
+    if real["effects"] and real["sensor"] == "reference":
+        raise ValueError("the fitted mapper on a reality with effects needs a model file (--fitted-model): "
+                         "characterise a capture set simulated with those effects")
+    return work.fitted_model(key, sensor=real["sensor"], preset=preset, width=width, height=height,
+                             show_progress=show_progress)
 
 
 def _common_scores(maps: dict, truth) -> dict:
@@ -642,135 +801,3 @@ def _matched_scores(maps: dict, truth) -> dict:
         v = m.layer("variance")
         out[name] = _cell_scores(m.layer("elevation"), v, tr, most_confident(v, m.is_known(), n))
     return {"cells": n, "mappers": out}
-
-
-# ---------------------------------------------------------------------------------------------
-# output
-# ---------------------------------------------------------------------------------------------
-def _fmt(v, scale=1.0, digits=1):
-    if v is None or not math.isfinite(v):
-        return "-"
-    return f"{v * scale:.{digits}f}"
-
-
-def format_table(report: dict) -> str:
-    """The report as a plain-text table (mm, %, ms)."""
-    eff = ", ".join(f"{e['name']}({', '.join(f'{k}={v:g}' for k, v in e['params'].items() if v is not None)})"
-                    for e in report["sim_effects"]) or "none"
-    reality = report.get("reality", "reference")
-    if reality == "stereo":
-        reality += f" (preset {report.get('preset')})"
-    head = (f"scene {report['scene']}, {report['frames']} frames {report['width']}x{report['height']}, "
-            f"seed {report['seed']}, reality {reality}, sim effects: {eff}, paper_capped cap {report['cap']:g}")
-    cols = ("mapper", "RMSE", "p95|e|", "NLL", "cov1s", "cov2s", "mean s", "edge", "flat", "known", "ms/fr",
-            "| common:", "RMSE", "NLL", "cov2s", "| matched:", "RMSE", "NLL", "cov2s")
-    rows = []
-    common = report.get("common", {}).get("mappers", {})
-    matched = report.get("matched", {}).get("mappers", {})
-    for name, m in report["mappers"].items():
-        c, q = common.get(name, {}), matched.get(name, {})
-        rows.append((name, _fmt(m["rmse_m"], 1e3), _fmt(m["p95_abs_m"], 1e3), _fmt(m["nll"], 1, 2),
-                     _fmt(m["coverage_1sigma"], 100), _fmt(m["coverage_2sigma"], 100), _fmt(m["mean_sigma_m"], 1e3),
-                     _fmt(m["edge_rmse_m"], 1e3), _fmt(m["flat_rmse_m"], 1e3), _fmt(m["known_fraction"], 100),
-                     _fmt(m["ms_per_frame"], 1, 2), "|", _fmt(c.get("rmse_m"), 1e3), _fmt(c.get("nll"), 1, 2),
-                     _fmt(c.get("coverage_2sigma"), 100), "|", _fmt(q.get("rmse_m"), 1e3), _fmt(q.get("nll"), 1, 2),
-                     _fmt(q.get("coverage_2sigma"), 100)))
-    widths = [max(len(str(r[k])) for r in rows + [cols]) for k in range(len(cols))]
-    line = lambda r: "  ".join(str(x).ljust(w) if k == 0 else str(x).rjust(w)  # noqa: E731
-                               for k, (x, w) in enumerate(zip(r, widths)))
-    units = ("", "mm", "mm", "", "%", "%", "mm", "mm", "mm", "%", "ms", "", "mm", "", "%", "", "mm", "", "%")
-    out = [head, line(cols), line(units)] + [line(r) for r in rows]
-    out.append(f"common: the {report.get('common', {}).get('cells', 0)} cells known to every mapper; "
-               f"matched: each mapper's {report.get('matched', {}).get('cells', 0)} most confident cells "
-               "(the fewest any mapper knows); ideal coverage 68.3 % (1 sigma) and 95.4 % (2 sigma); "
-               "NLL in nats (lower is better)")
-    return "\n".join(out)
-
-
-class _CompareLogger:
-    """Everything a comparison sends to rerun (through elevmap.viz)."""
-
-    def __init__(self, path, names, frames, show_progress):
-        from .. import viz
-
-        self.viz = viz
-        self.names = list(names)
-        self.recording = viz.open_recording(path, "elevmap_compare")
-        self.rec = self.recording.__enter__()
-        try:
-            self._start(frames)
-        except BaseException as exc:
-            self.abort(exc)
-            raise
-
-    def _start(self, frames):
-        viz = self.viz
-        viz.log_world_frame(self.rec, "maps")
-        for name in ["truth"] + self.names:
-            viz.log_world_frame(self.rec, f"maps/{name}")
-        f0 = frames[0]
-        viz.log_camera(self.rec, "camera/depth", f0.K, f0.width, f0.height, static=True)
-        self.trail = np.array([f.T_map_cam[:3, 3] for f in frames])
-        for k, f in enumerate(frames):
-            viz.set_time(self.rec, "frame", sequence=k)
-            if f.depth.dtype == np.uint16:
-                viz.log_depth_png(self.rec, "camera/depth", f.depth, meter=1.0 / f.depth_scale)
-            else:
-                viz.log_depth(self.rec, "camera/depth", f.depth)
-
-    def frame_callback(self, truth):
-        viz, rec = self.viz, self.rec
-
-        def on_frame(name, k, emap):
-            viz.set_time(rec, "frame", sequence=k)
-            err = map_error(emap, truth)
-            if err["known_cells"]:
-                viz.log_scalar(rec, f"plots/rmse_m/{name}", err["rmse_m"])
-                viz.log_scalar(rec, f"plots/coverage_2sigma/{name}", err["coverage_2sigma"])
-                var = emap.known_layer("variance")
-                viz.log_scalar(rec, f"plots/mean_sigma_m/{name}", float(np.nanmean(np.sqrt(var))))
-        return on_frame
-
-    def final(self, maps, truth, walk, report):
-        viz, rec = self.viz, self.rec
-        viz.set_time(rec, "frame", sequence=report["frames"] - 1)
-        first = next(iter(maps.values()))
-        xs, ys = first.cell_centres()
-        tr = _truth_grid(first, truth)
-        lo, hi = viz.robust_range(tr)
-        viz.log_height_mesh(rec, "maps/truth/elevation", xs, ys, tr, viz.colormap(tr, lo, hi))
-        viz.log_trail(rec, "maps/truth/trail", self.trail)
-        e = ERROR_COLOR_RANGE_M
-        for name, emap in maps.items():
-            h, v = emap.known_layer("elevation"), emap.known_layer("variance")
-            err = h - tr
-            viz.log_height_mesh(rec, f"maps/{name}/elevation", xs, ys, h, viz.colormap(h, lo, hi))
-            viz.log_height_mesh(rec, f"maps/{name}/error", xs, ys, h, viz.colormap(err, -e, e))
-            viz.log_trail(rec, f"maps/{name}/trail", self.trail)
-            viz.log_rgb_image(rec, f"errors/{name}", viz.map_image(viz.colormap(err, -e, e)))
-            with np.errstate(invalid="ignore"):
-                zs = np.abs(err) / np.sqrt(v)
-            viz.log_rgb_image(rec, f"zscores/{name}", viz.map_image(viz.colormap(zs, *ZSCORE_COLOR_RANGE)))
-        table = format_table(json_ready(report))
-        notes = (f"# elevmap compare\n\n```\n{table}\n```\n\nMaps: `maps/<mapper>/error` is each final map coloured "
-                 f"by its signed error (blue: below the truth, green: right, red: above; +-{e * 100:.0f} cm); "
-                 f"`elevation` (hidden) by height. Tabs: signed error images and |error|/sigma images "
-                 f"(0 to 4; calibrated maps are mostly below 2).")
-        viz.log_text(rec, "result", notes)
-        cx, cy = first.centre_xy
-        names = ["truth"] + self.names
-        bp = viz.compare_blueprint(
-            [f"maps/{n}" for n in names],
-            image_grids=[("errors", [f"errors/{n}" for n in self.names]),
-                         ("z-scores", [f"zscores/{n}" for n in self.names])],
-            time_series_entities=["plots/rmse_m", "plots/coverage_2sigma", "plots/mean_sigma_m"],
-            text_entities=["result"], depth_entities=["camera/depth"], timeline="frame",
-            hidden_entities=[f"maps/{n}/elevation" for n in self.names],
-            eye_position=(cx - 3.0, cy - 3.5, 3.5), eye_look_target=(cx + 0.5, cy, 0.0))
-        rec.send_blueprint(bp)
-
-    def abort(self, exc):
-        self.recording.__exit__(type(exc), exc, exc.__traceback__)
-
-    def close(self):
-        self.recording.__exit__(None, None, None)

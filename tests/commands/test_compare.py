@@ -13,7 +13,7 @@ from conftest import random_pose_cov, random_transform
 from elevmap import Mapper
 from elevmap.cli import main
 from elevmap.commands.compare import (
-    COMPARE_MAX_VARIANCE, MAPPERS, REPORT_KEYS, most_confident, parse_effects, run_compare,
+    ALL_MAPPERS, COMPARE_MAX_VARIANCE, MAPPERS, REPORT_KEYS, most_confident, parse_effects, parse_reality, run_compare,
 )
 from noise_model.alternatives import anybotics_d435, constant, make_variance_model, quadratic
 from noise_model.sim.effects import correlated_noise, depth_bias, gaussian_random_field, make_effect
@@ -226,15 +226,16 @@ def test_parse_effects():
 # ---------------------------------------------------------------------------------------------
 def test_compare_cli_writes_the_report_table_and_recording(tmp_path, capsys):
     out, rrd = tmp_path / "report.json", tmp_path / "compare.rrd"
+    names = ["paper", "disparity", "quadratic", "anybotics_d435", "constant", "paper_capped"]
     args = ["compare", "--scene", "stairs", "--frames", "3", "--sim-effects", "correlated_noise,depth_bias:scale=1.01",
-            "--seed", "2", "--json", str(out), "--rrd", str(rrd), "--no-progress"]
+            "--seed", "2", "--json", str(out), "--rrd", str(rrd), "--no-progress", "--mappers", ",".join(names)]
     assert main(args) == 0
     text = capsys.readouterr().out
-    for name in MAPPERS:
+    for name in names:
         assert name in text
     report = json.loads(out.read_text())
     assert report["scene"] == "stairs" and report["frames"] == 3 and report["seed"] == 2
-    assert list(report["mappers"]) == list(MAPPERS)
+    assert list(report["mappers"]) == names
     for name, m in report["mappers"].items():
         for k in REPORT_KEYS:
             assert k in m, (name, k)
@@ -247,13 +248,20 @@ def test_compare_cli_writes_the_report_table_and_recording(tmp_path, capsys):
     assert report["mappers"]["paper"]["model"]["max_points_per_frame"] is None
     assert [e["name"] for e in report["sim_effects"]] == ["correlated_noise", "depth_bias"]
     assert report["sim_effects"][1]["params"]["scale"] == 1.01
-    assert report["common"]["cells"] > 0 and set(report["common"]["mappers"]) == set(MAPPERS)
+    assert report["common"]["cells"] > 0 and set(report["common"]["mappers"]) == set(names)
     # equal coverage: as many cells as the mapper that knows fewest
     assert report["matched"]["cells"] == min(m["known_cells"] for m in report["mappers"].values())
-    assert set(report["matched"]["mappers"]) == set(MAPPERS) and "matched:" in text
+    assert set(report["matched"]["mappers"]) == set(names) and "matched:" in text
     assert report["map"]["fusion"]["max_variance"] == COMPARE_MAX_VARIANCE
+    assert report["mappers"]["disparity"]["model"]["params"] == {"sigma_d_px": 0.08}
+    # the edge band: known cells of some mapper in the band, each mapper's share of them
+    assert report["edge_band_cells"] > 0
+    for m in report["mappers"].values():
+        assert 0 < m["edge_known_fraction"] <= 1 and m["edge_cells"] <= report["edge_band_cells"]
+        assert 0 <= m["edge_coverage_1sigma"] <= m["edge_coverage_2sigma"] <= 1
     assert rrd.stat().st_size > 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["compare.rrd", "report.json"]
+    assert report["frames_cached"] is False
     # no silent overwrite
     assert main(args) == 2
     assert "--overwrite" in capsys.readouterr().err
@@ -264,14 +272,17 @@ def test_every_mapper_gets_the_same_frames(monkeypatch):
     orig = Mapper.integrate
 
     def spy(self, camera, depth, **kw):
-        key = self.cameras[camera].variance_model, self.map.fusion_params.max_points_per_frame
+        key = id(self)                                              # one Mapper per mapper of the comparison
         h = hashlib.sha256(np.ascontiguousarray(depth).tobytes())
         h.update(np.asarray(kw["T_map_cam"]).tobytes())
-        seen.setdefault(repr(key), []).append(h.hexdigest())
+        seen.setdefault(key, []).append(h.hexdigest())
         return orig(self, camera, depth, **kw)
 
     monkeypatch.setattr(Mapper, "integrate", spy)
-    report = run_compare("boxes", 2, seed=1, sim_effects="correlated_noise", show_progress=False)
+    fitted = nm.D435.with_coefficients((0.002, 0.001, 0.004, 0.02))
+    report = run_compare("boxes", 2, seed=1, sim_effects="correlated_noise", show_progress=False,
+                         fitted_model=fitted)
+    assert list(report["mappers"]) == list(MAPPERS)
     assert len(seen) == len(MAPPERS)
     sequences = list(seen.values())
     assert all(s == sequences[0] for s in sequences) and len(sequences[0]) == 2
@@ -386,6 +397,95 @@ def test_sim_effects_from_a_gap_report(tmp_path):
         parse_effects(str(tmp_path / "missing.json"))
 
 
+def test_reality_a_gap_report_is_the_reference_plus_its_effects(tmp_path):
+    report = {"format": "d435-gap/1", "effects": [{"name": "depth_bias", "params": {"scale": 0.99, "offset_px": 0.0}}]}
+    path = tmp_path / "gap.json"
+    path.write_text(json.dumps(report))
+    r = parse_reality(str(path))
+    assert r["kind"] == "gap" and r["sensor"] == "reference" and r["gap_report"] == str(path)
+    assert [e.name for e in r["effects"]] == ["depth_bias"] and len(r["effects_digest"]) == 64
+    assert parse_reality("stereo")["effects"] == [] and parse_reality("reference")["effects_digest"] is None
+    # the same walk as --sim-effects GAP.json, frame for frame
+    a = run_compare("boxes", 2, mappers="paper", reality=str(path), show_progress=False)
+    b = run_compare("boxes", 2, mappers="paper", sim_effects=str(path), show_progress=False)
+    assert a["frames_digest"] == b["frames_digest"] and a["reality"] == "gap" and b["reality"] == "reference"
+    for bad, kw, msg in (("moon", {}, "unknown reality"), ("stereo", {"sim_effects": "depth_bias"}, "no sim effects"),
+                         (str(path), {"sim_effects": "depth_bias"}, "not both"),
+                         (str(tmp_path / "none.json"), {}, "gap report")):
+        with pytest.raises(ValueError, match=msg):
+            parse_reality(bad, **kw)
+    with pytest.raises(ValueError, match="fitted mapper"):
+        run_compare("boxes", 1, mappers="fitted", show_progress=False)
+
+
+def test_the_work_folder_caches_the_walk_and_the_fitted_model(tmp_path):
+    """The second run reads the frames from the cache, identical; the fitted model is characterised once on
+    the paper's grid simulated with the reality (two frames per capture here) and read back."""
+    from elevmap.commands.compare_work import WorkDir
+
+    work = WorkDir(tmp_path / "work")
+    first = run_compare("stairs", 2, mappers="paper", show_progress=False, work_dir=work)
+    again = run_compare("stairs", 2, mappers="paper", show_progress=False, work_dir=work)
+    assert not first["frames_cached"] and again["frames_cached"]
+    assert again["frames_digest"] == first["frames_digest"]
+    assert again["mappers"]["paper"]["rmse_m"] == first["mappers"]["paper"]["rmse_m"]
+    other = run_compare("stairs", 2, seed=1, mappers="paper", show_progress=False, work_dir=work)
+    assert not other["frames_cached"] and other["frames_digest"] != first["frames_digest"]
+    model, info = work.fitted_model("reference", sensor="reference", n_frames=2)
+    assert not info["cached"] and model.family in ("paper", "disparity")
+    model2, info2 = work.fitted_model("reference", sensor="reference", n_frames=2)
+    assert info2["cached"] and model2 == model
+    # a model fitted on the reference simulation of the paper's model is near the paper's at 1 m, head-on
+    assert nm.axial_sigma(1.0, 0.0, model.with_focal(300.0) if model.family == "disparity" else model) == \
+        pytest.approx(nm.axial_sigma(1.0, 0.0), rel=0.3)
+    with pytest.raises(ValueError, match="is a file"):
+        WorkDir(tmp_path / "work" / "frames" / next(p.name for p in (tmp_path / "work" / "frames").iterdir()))
+
+
+def test_seed_summary_and_criteria_by_hand():
+    from elevmap.commands.compare_seeds import SUMMARY_KEYS, criteria, format_seeds_table, summarise
+
+    def run(a_rmse, a_nll, a_c1, a_c2, b_rmse, b_nll):
+        base = {k: 0.5 for k in SUMMARY_KEYS}
+        return {"mappers": {"a": {**base, "rmse_m": a_rmse, "nll": a_nll, "coverage_1sigma": a_c1,
+                                  "coverage_2sigma": a_c2, "edge_rmse_m": None},
+                            "b": {**base, "rmse_m": b_rmse, "nll": b_nll, "coverage_1sigma": 0.9,
+                                  "coverage_2sigma": 0.99, "edge_rmse_m": None}}}
+
+    runs = [run(0.030, -2.0, 0.70, 0.95, 0.029, -1.0), run(0.020, -3.0, 0.60, 0.90, 0.020, -1.5),
+            run(0.050, -1.0, 0.72, 0.96, 0.040, -2.5)]
+    s = summarise(runs)
+    assert s["a"]["rmse_m"]["median"] == 0.030 and s["a"]["rmse_m"]["min"] == 0.020 and s["a"]["rmse_m"]["max"] == 0.05
+    assert s["a"]["coverage_2sigma"]["median"] == 0.95 and s["a"]["nll"]["values"] == [-2.0, -3.0, -1.0]
+    assert math.isnan(s["a"]["edge_rmse_m"]["median"])               # no step edges in any walk
+    c = criteria(s)
+    # a: median RMSE 30 mm against b's 29 mm (+3.4 %), NLL -2.0 < -1.5, coverages in their bands
+    assert c["a"]["all"] and c["a"]["rmse_vs_best"] == pytest.approx(0.030 / 0.029 - 1)
+    assert not c["b"]["coverage_2sigma"] and not c["b"]["lowest_nll"] and c["b"]["rmse_within_5pct"]
+    slow = summarise([run(0.031, -2.0, 0.70, 0.95, 0.029, -1.0)])
+    assert not criteria(slow)["a"]["rmse_within_5pct"]                # +6.9 %
+    table = format_seeds_table({"scene": "stairs", "seeds": [0, 1, 2], "frames": [113] * 3, "width": 424,
+                                "height": 240, "reality": "stereo", "preset": "default", "summary": s, "criteria": c})
+    assert "30.0 [20.0, 50.0]" in table and "all met" in table and "coverage_2sigma, coverage_1sigma, lowest_nll missed" in table
+
+
+def test_seeds_run_each_seed_and_the_cli(tmp_path, capsys):
+    out = tmp_path / "r.json"
+    assert main(["compare", "--scene", "boxes", "--frames", "2", "--seeds", "2", "--seed", "3", "--mappers",
+                 "paper,constant", "--json", str(out), "--no-progress"]) == 0
+    r = json.loads(out.read_text())
+    assert r["seeds"] == [3, 4] and [x["seed"] for x in r["runs"]] == [3, 4]
+    assert r["runs"][0]["frames_digest"] != r["runs"][1]["frames_digest"]
+    vals = [x["mappers"]["paper"]["rmse_m"] for x in r["runs"]]
+    assert r["summary"]["paper"]["rmse_m"]["median"] == pytest.approx(np.median(vals))
+    assert set(r["criteria"]) == {"paper", "constant"}
+    assert "medians over the seeds" in capsys.readouterr().out
+    assert main(["compare", "--frames", "1", "--seeds", "0", "--json", str(tmp_path / "x.json"),
+                 "--no-progress"]) == 2
+    assert main(["compare", "--frames", "1", "--seeds", "2", "--rrd", str(tmp_path / "x.rrd"), "--json",
+                 str(tmp_path / "x.json"), "--no-progress"]) == 2
+
+
 # ---------------------------------------------------------------------------------------------
 # the calibration must-show on the default walks (seed 0, 60 frames, 424x240; docs/calibration.md)
 # ---------------------------------------------------------------------------------------------
@@ -393,7 +493,8 @@ def test_sim_effects_from_a_gap_report(tmp_path):
 def test_with_reality_equal_to_the_model_the_paper_mapper_is_calibrated_and_best(scene):
     """Reality = the paper's model: the paper mapper's 2-sigma coverage in [0.93, 0.97], 1-sigma in
     [0.64, 0.73], the lowest mean NLL of all mappers, and an RMSE within 5 % of the best other's."""
-    r = run_compare(scene, 60, show_progress=False)["mappers"]
+    r = run_compare(scene, 60, show_progress=False,
+                    mappers="paper,disparity,quadratic,anybotics_d435,constant,paper_capped")["mappers"]
     paper = r["paper"]
     assert 0.93 <= paper["coverage_2sigma"] <= 0.97
     assert 0.64 <= paper["coverage_1sigma"] <= 0.73
