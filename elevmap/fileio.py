@@ -282,10 +282,11 @@ def check_folder_output(what: str, folder, overwrite: bool, own_files, inputs: I
     Returns
     -------
     Path
-        The folder.
+        The folder, absolute (a folder swapped in is a new directory: a relative name such as "." would
+        still mean the old one).
     """
     folder = Path(folder)
-    remove_leftovers(folder)
+    remove_leftovers(os.path.abspath(folder))
     ins = input_files(inputs)
     if folder.resolve() in ins or any(folder.resolve() in q.parents for q in ins):
         raise ValueError(f"{what} {folder} holds an input of this run; refusing to replace it")
@@ -311,7 +312,7 @@ def check_folder_output(what: str, folder, overwrite: bool, own_files, inputs: I
                 raise ValueError(f"{what} {folder} also holds files that are not part of it "
                                  f"({', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}); replacing "
                                  "the folder would delete them: move them out first")
-    return folder
+    return Path(os.path.abspath(folder))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -379,7 +380,7 @@ def atomic_folder(path):
     is removed. On any exception the temporary folder is removed and ``path`` is untouched.
     :func:`check_folder_output` checks the destination first.
     """
-    path = Path(path)
+    path = Path(os.path.abspath(path))          # "." names a folder that can be swapped too
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = _temp_name(path)
     os.mkdir(tmp, 0o700)
