@@ -135,7 +135,7 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     """
     dirs = [real_dir] if isinstance(real_dir, (str, os.PathLike)) else list(real_dir)
     jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite,
-                           inputs=[Path(d) / "captures.json" for d in dirs]).values()
+                           inputs=[Path(d) for d in dirs]).values()      # captures.json and depth files
     sets, real = load_capture_sets(dirs)
     distances = angles = parents = None
     if depth_bands is not None:
@@ -549,7 +549,7 @@ def run_realdata(root, json_path=None, rrd_path=None, effects=None, seed: int = 
     root = Path(root)
     if not root.is_dir():
         raise ValueError(f"{root}: no such folder (the genuine D435 recordings)")
-    jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite).values()
+    jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite, inputs=[root]).values()
     caps, rois, dists, notes, skipped = realdata_captures(root, planes, model)
     if not caps:
         raise ValueError(f"{root}: no usable plane ({skipped})")
