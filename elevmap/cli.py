@@ -173,6 +173,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--work", metavar="DIR", default=None,
                    help="work folder caching the rendered walks and the fitted model (default: none for the "
                         "walks, elevmap-compare-work beside the --json report for the fitted model)")
+    p.add_argument("--set", default=None, metavar="KEY=VALUE,...", dest="settings",
+                   help="map settings for every mapper: FusionParams fields and visibility_cleanup, e.g. "
+                        "spread_alpha=none,neighbour_radius=0 (what a fusion rule buys)")
     p.add_argument("--fitted-model", metavar="PATH", default=None,
                    help="the fitted mapper's model file (elevmap characterize --model) instead of fitting one")
     p.add_argument("--json", metavar="PATH", help="the report (required)")
@@ -206,6 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-bands", metavar="EDGES", default=None,
                    help="split every capture into bands of true depth at these comma-separated edges [m] (a floor "
                         "then shows where in depth and angle the gap lies)")
+    p.add_argument("--direct", action="store_true",
+                   help="also measure the effects directly on the captures and the final model's simulation, "
+                        "and put each fitted parameter next to its measurement")
     p.add_argument("--jobs", type=int, default=1, help="processes for --selftest (default: 1)")
     p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single D435 frames of DIR (its regions "
                                                       "of known planes)")
@@ -297,7 +303,7 @@ def _source_help() -> str:
 
 def _effects_help() -> str:
     """The effects and their default parameters, then an example (imports the effects library)."""
-    from .commands.compare import effects_help
+    from .commands.compare_args import effects_help
 
     return (effects_help() + "\ne.g. --sim-effects correlated_noise:length_px=5,depth_bias  or  "
             "--sim-effects gap.json")
@@ -563,7 +569,7 @@ def _cmd_compare(args) -> int:
               width=width, height=height, show_progress=not args.no_progress,
               max_variance=COMPARE_MAX_VARIANCE if args.max_variance is None else args.max_variance,
               reality=args.reality, preset=args.preset or "default", work_dir=args.work, fitted_model=args.fitted_model,
-              fit_dir=fit_dir)
+              fit_dir=fit_dir, settings=args.settings)
     if args.seeds is None:
         report = json_ready(run_compare(args.scene, args.frames, seed=args.seed, rrd_path=args.rrd, **kw))
         text = format_table(report)
@@ -603,7 +609,8 @@ def _cmd_gap(args) -> int:
             raise ValueError("give REAL_CAPTURES (a capture-set folder), --realdata DIR or --selftest")
         report = run_gap(args.real if len(args.real) > 1 else args.real[0], json_path=args.json, rrd_path=args.rrd,
                          heldout=args.heldout or "auto", effects=args.effects, seed=args.seed,
-                         show_progress=not args.no_progress, overwrite=args.overwrite, depth_bands=args.depth_bands)
+                         show_progress=not args.no_progress, overwrite=args.overwrite, depth_bands=args.depth_bands,
+                         direct=args.direct)
     print(format_summary(report))
     if args.json or args.rrd:
         print("wrote " + " and ".join(p for p in (args.json, args.rrd) if p)

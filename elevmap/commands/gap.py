@@ -13,6 +13,7 @@ random parameters); ``run_realdata`` runs on single real frames whose geometry i
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import time
 from collections.abc import Sequence
@@ -97,7 +98,8 @@ def load_capture_sets(real_dirs):
 
 def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=None, seed: int = 0,
             show_progress: bool = True, model: SensorModel = D435, config: G.SelectionConfig | None = None,
-            n_splits: int = 64, n_boot: int = 64, overwrite: bool = False, depth_bands=None) -> dict:
+            n_splits: int = 64, n_boot: int = 64, overwrite: bool = False, depth_bands=None,
+            direct: bool = False) -> dict:
     """``elevmap gap REAL_CAPTURES [REAL_CAPTURES ...]``: diagnose capture sets, write the report (and recording).
 
     Parameters
@@ -125,6 +127,10 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
         (:func:`noise_model.analysis.diagnosis.split_by_depth`): a slanted plane (a floor) then fills one
         stratum per band, at the band's median depth and incidence angle. Held-out ids may name the
         captures before the split (all their bands are held out).
+    direct : bool
+        Also measure the effects directly on the captures and on the final model's simulation of them
+        (:mod:`noise_model.analysis.diagnosis.direct`), and put each fitted parameter that has a direct
+        meaning next to its measurement (report key ``direct``).
 
     Returns
     -------
@@ -149,12 +155,37 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     report["mismatches"] = [m for cs in sets for m in cs.mismatches]
     if parents is not None:
         report["depth_bands"] = {"edges_m": list(edges), "parts": parents}
+    if direct:
+        report["direct"] = direct_check(real, res.selected, model, seed, report.get("sim_frames") or 2)
     if rp is not None:
         log_gap_recording(rp, report, res, real, model, seed)
         report["rrd"] = str(rp)
     if jp is not None:
         write_json_atomic(jp, report)
     return report
+
+
+def direct_check(real, selected, model: SensorModel = D435, seed: int = 0, n_frames: int = 2) -> dict:
+    """The direct measurements of the real captures and of the final model's simulation of them, and each
+    fitted parameter next to its measurement (:func:`noise_model.analysis.diagnosis.direct.check_fitted`).
+
+    The simulation is the diagnosis's own (:class:`noise_model.analysis.diagnosis.CaptureSimulator`, the
+    same seeds), one capture at a time.
+    """
+    from noise_model.analysis.diagnosis.direct import check_fitted, direct_measurements
+
+    sim = CaptureSimulator({c.id: c.geometry for c in real}, model, seed)
+
+    def simulated():
+        for c in real:
+            yield CaptureData(c.geometry, sim([c.id], list(selected), int(n_frames))[c.id], c.mask,
+                              c.geometry_origin)
+
+    measured = direct_measurements(real)
+    model_measured = direct_measurements(simulated())
+    effects = [{"name": n, "params": p} for n, p in selected]
+    return {"real": measured, "final_model": model_measured,
+            "check": check_fitted(effects, measured, model_measured)}
 
 
 def _parse_edges(depth_bands) -> list[float]:
@@ -224,6 +255,9 @@ def format_summary(report: dict, top: int = 8) -> str:
     if report.get("unavailable"):
         for k, why in report["unavailable"].items():
             out.append(f"  not computed: {k}: {why}")
+    if report.get("fitted_geometry"):
+        fg = report["fitted_geometry"]
+        out.append(f"  fitted geometry ({len(fg['captures'])} captures): not computed: {fg['not_computed']}")
     out.append("WHERE (largest gaps first):")
     for e in report["where"][:top]:
         out.append(f"  {e['gap']:9.3g}  {e['statistic']:15s} {_stratum_text(e['stratum']):42s} real "
@@ -268,6 +302,13 @@ def format_summary(report: dict, top: int = 8) -> str:
                        f"{_value_text(e['statistic'], e['real'])}, sim {_value_text(e['statistic'], e['sim'])}")
     else:
         out.append("  nothing left above the noise floor")
+    if report.get("direct"):
+        dp = report["direct"]["real"]["pooled"]
+        out.append("DIRECT measurements of the real captures: " + ", ".join(
+            f"{k} {v:.4g}" for k, v in dp.items() if v is not None and math.isfinite(v)))
+        for row in report["direct"]["check"]:
+            out.append(f"  {row['quantity']:60s} {row['effect']:24s} fitted {row['fitted']:.4g}, direct "
+                       f"{row['direct']:.4g}: ratio {row['ratio']:.3f} ({'agrees' if row['agrees'] else 'DISAGREES'})")
     out.append(f"({report.get('simulated_captures', 0)} captures simulated in {report.get('seconds', 0):.1f} s)")
     return "\n".join(out)
 

@@ -342,7 +342,11 @@ def test_fitted_geometry_skips_bias_and_uses_the_masks(tmp_path):
     fill = [w for w in rep["where"] if w["statistic"] == "fill_rate" and w["gap"] > 0]
     assert not fill, fill[:3]
     only_planes = EG.run_gap(tmp_path / "planes", effects="depth_bias,invalid_band", show_progress=False,
-                             heldout="none", n_splits=16, n_boot=16)
+                             heldout="none", n_splits=16, n_boot=16, direct=True)
+    assert "fitted geometry (6 captures)" in EG.format_summary(only_planes)
+    # nothing selected: the reference's own simulation measures as the real data do
+    (row,) = [r for r in only_planes["direct"]["check"] if r["quantity"].startswith("temporal_sigma_d_px")]
+    assert row["agrees"] and row["ratio"] == pytest.approx(1.0, abs=0.1)
     assert "depth_bias" in only_planes["skipped"] and "measured distance" in only_planes["skipped"]["depth_bias"]
     assert "bias_m" in only_planes["unavailable"]
     assert not [w for w in only_planes["where"] if w["statistic"] == "bias_m"]

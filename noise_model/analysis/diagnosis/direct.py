@@ -126,8 +126,10 @@ def capture_measurements(c) -> dict:
     return row
 
 
-def direct_measurements(captures: Sequence) -> dict:
+def direct_measurements(captures) -> dict:
     """The direct measurements of a capture set: per capture (:func:`capture_measurements`) and pooled.
+
+    ``captures`` is any iterable of CaptureData (a generator keeps one capture in memory at a time).
 
     Pooled: ``disparity_step_px`` (median spacing of distinct disparities over the captures at >= 1 m),
     ``band_margin_px`` (median over the walls), the medians over captures of the sigmas and lengths.

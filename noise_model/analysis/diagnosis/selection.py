@@ -19,11 +19,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .floor import Floor, GapResult, aggregate_by, compare, make_floor, shrink_test
+from .floor import Floor, GapResult, aggregate_by, compare, make_floor, realisation_variance, shrink_test
 from .strata import Binning, GapCapture
 from .sums import STATISTICS, capture_sums, check_depth_stack, frame_sampling, pool_sums
 
-__all__ = ["SelectionConfig", "DiagnosisResult", "Diagnosis", "model_key"]
+__all__ = ["SelectionConfig", "DiagnosisResult", "Diagnosis", "model_key", "other_realisation"]
 
 @dataclass(frozen=True)
 class SelectionConfig:
@@ -90,6 +90,18 @@ class DiagnosisResult:
     final_heldout: GapResult
     selected: list
     captures: dict = field(default_factory=dict)
+
+
+def other_realisation(effects):
+    """The same model with its static fields drawn anew: every effect with a ``seed`` parameter (the
+    realisation of a field fixed over the frames) gets another seed; None when there is none."""
+    out, changed = [], False
+    for name, params in effects:
+        if "seed" in params:
+            params = {**params, "seed": (int(params["seed"]) + 7919) % (2 ** 31 - 1)}
+            changed = True
+        out.append((name, params))
+    return out if changed else None
 
 
 class Diagnosis:
@@ -199,15 +211,29 @@ class Diagnosis:
         return self._floors[key]
 
     def evaluate(self, effects, ids) -> GapResult:
-        """The gap of the model reference + ``effects`` over the captures ``ids``."""
+        """The gap of the model reference + ``effects`` over the captures ``ids``.
+
+        A model with static fields (effects with a ``seed`` of their realisation) is simulated a second
+        time with other realisations, and their spread is added to the floor
+        (:func:`~.floor.realisation_variance`): the real data hold one realisation, which no seed fitted
+        to them can reproduce.
+        """
         fl = self.floor(ids)
         store = self._ensure(effects, ids)
         caps = [self.captures[i] for i in ids]
-        _, sim = pool_sums(caps, [store[i] for i in ids], self.binning)
-        return compare(fl, self.real_sampling, sim, self.sim_sampling, self.config.alpha)
+        keys, sim = pool_sums(caps, [store[i] for i in ids], self.binning)
+        extra = None
+        other = other_realisation(effects)
+        if other is not None:
+            alt = self._ensure(other, ids)
+            _, sim2 = pool_sums(caps, [alt[i] for i in ids], self.binning)
+            extra = realisation_variance(keys, sim, sim2)
+        return compare(fl, self.real_sampling, sim, self.sim_sampling, self.config.alpha, extra)
 
     def forget(self, keep) -> None:
         """Drop cached simulations of models not in ``keep`` (lists of effects)."""
+        keep = list(keep)
+        keep += [o for o in (other_realisation(e) for e in keep) if o is not None]
         keys = {model_key(e) for e in keep} | {model_key([])}
         for k in list(self._sums):
             if k not in keys:

@@ -208,9 +208,11 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
 
     Per capture (interior pixels): the temporal mean of d = f B / z minus the true disparity, minus its
     best plane in (u, v) (a depth bias maps a plane's affine disparity to another affine disparity, so
-    it leaves nothing). The pattern adds sigma_px^2 rho(h) to its lag covariance; the base simulation's
-    (noise / F) is subtracted. Captures are pooled with weights n / (base variance + current estimate)^2,
-    then sigma_px^2 and the length are fitted (:func:`_fit_gaussian_cov`). The pattern's realisation is
+    it leaves nothing); its lag covariance less the temporal share (:func:`_static_lag_cov`: the
+    deviations' lag covariance / (F - 1)), so that a temporal noise unlike the base's does not read as
+    static. The pattern adds sigma_px^2 rho(h) to it; the base simulation's is subtracted. Captures are
+    pooled with weights n / (base temporal-mean variance + current estimate)^2, then sigma_px^2 and the
+    length are fitted (:func:`_fit_gaussian_cov`). The pattern's realisation is
     not recovered (its ``seed`` is returned as 0).
 
     A capture of one frame: the "temporal mean" is its frame (the residual about its best plane fitted
@@ -229,19 +231,25 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
         with np.errstate(divide="ignore", invalid="ignore"):
             dtrue = fb / z
         if c.n_frames >= 2:
-            rr = _detrended_mean_residual(c, m, fb, dtrue)
+            sr = _static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
+            sb = _static_lag_cov(b, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
             rb = _detrended_mean_residual(b, m, fb, dtrue)
+            if sr is None or sb is None or rb is None:
+                continue
+            (cr, n), (cb, _) = sr, sb
+            v0 = float(np.nanvar(rb[m]))                  # the base's temporal-mean variance: the weights' scale
         else:
             rr = _single_frame_residual(c, m, fb)
             rb = _single_frame_residual(b, m, fb)
-        if rr is None or rb is None:
-            continue
-        single |= c.n_frames == 1
-        cr, n = _lag_cov(rr[None], m, _STATIC_LAGS)
-        cb, _ = _lag_cov(rb[None], m, _STATIC_LAGS)
+            if rr is None or rb is None:
+                continue
+            single = True
+            cr, n = _lag_cov(rr[None], m, _STATIC_LAGS)
+            cb, _ = _lag_cov(rb[None], m, _STATIC_LAGS)
+            v0 = cb[0]
         if not (np.all(np.isfinite(cr)) and np.all(np.isfinite(cb))):
             continue
-        rows.append((cr - cb, n, cb[0]))
+        rows.append((cr - cb, n, v0))
     if not rows:
         raise ValueError("static_pattern: no capture with >= 50 interior pixels with data (in half its frames)")
     lags = np.array(_STATIC_LAGS)
