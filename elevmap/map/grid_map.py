@@ -56,7 +56,9 @@ def to_grid_map(emap: ElevationMap, layers=None, *, frame_id: str = "map") -> di
         (``column_index`` then ``row_index``); ``outer_start_index``, ``inner_start_index`` (0, 0);
         ``size`` (rows, cols). ``elevation`` and ``variance`` are NaN in cells that are not known
         (fewer than ``FusionParams.min_points`` points, see ``ElevationMap.is_known``): grid_map's
-        basic layers mark validity; the other layers are exported as stored.
+        basic layers mark validity; ``time`` is exported relative to ``stamp`` (t - stamp [s], <= 0:
+        float32 resolves a wall-clock stamp of ~1.7e9 s only to ~128 s, an age to milliseconds); the
+        other layers are exported as stored.
 
     Raises
     ------
@@ -81,6 +83,8 @@ def to_grid_map(emap: ElevationMap, layers=None, *, frame_id: str = "map") -> di
         m = g.unwrap(emap.data[LAYERS.index(name)])      # map-index order, [i, j]
         if name in ("elevation", "variance"):            # cells below min_points read as unknown
             m = np.where(pending, np.nan, m)
+        elif name == "time":                             # relative to the stamp: float32 keeps ms precision
+            m = m - emap.last_stamp
         gm = m[::-1, ::-1]                               # grid_map order, [r, c]
         data[name] = np.ascontiguousarray(gm.T, dtype=np.float32).ravel()   # column-major
     centre = g.centre_xy

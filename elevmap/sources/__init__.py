@@ -7,6 +7,8 @@ known without decoding them). :func:`open_source` opens any of them from a comma
   ``sim:SCENE``).
 * :mod:`.realsense` -- RealSense .bag/.db3 recordings (:class:`RealSenseFileSource`), the live camera
   (:class:`LiveRealSenseSource`), and a .db3 writer (:func:`record_db3`).
+* :mod:`.rosbag` -- ROS 1 .bag, ROS 2 bag folders (.db3 / .mcap) and bare .mcap files, read without ROS
+  through the ``rosbags`` package (:class:`RosbagSource`; :func:`is_ros_bag`, :func:`is_realsense_recording`).
 * :mod:`.rrd` -- rerun recordings with a depth image under a pinhole (:class:`RrdSource`), such as those
   ``elevmap run --rrd`` writes.
 * :mod:`.captures` -- capture sets, format ``d435-captures/1`` (:func:`read_capture_set`,
@@ -43,6 +45,9 @@ _NAMES = {
     "RealSenseFileSource": "realsense",
     "RealSenseUnavailable": "realsense",
     "record_db3": "realsense",
+    "RosbagSource": "rosbag",
+    "is_ros_bag": "rosbag",
+    "is_realsense_recording": "rosbag",
     "RrdSource": "rrd",
     "read_rrd_frames": "rrd",
     "SimulatedWalk": "simulated",
