@@ -141,7 +141,8 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     """
     dirs = [real_dir] if isinstance(real_dir, (str, os.PathLike)) else list(real_dir)
     jp, rp = check_outputs({"json_path": json_path, "rrd_path": rrd_path}, overwrite,
-                           inputs=[Path(d) for d in dirs]).values()      # captures.json and depth files
+                           inputs=[Path(d) / "captures.json" for d in dirs]      # and a set's depth files:
+                           + [Path(d) for d in dirs if (Path(d) / "captures.json").is_file()]).values()
     sets, real = load_capture_sets(dirs)
     distances = angles = parents = None
     if depth_bands is not None:
