@@ -384,3 +384,27 @@ def test_two_mappers_in_two_threads_under_the_workqueue_layer():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     assert res.stdout.split() == ["workqueue", "True"]
+
+
+def test_a_read_only_folder_is_refused_before_any_work(tmp_path, capsys):
+    """D9: --rrd and --json into a folder nobody may write (mode 0o555, or immutable where the tests run as
+    root): one line naming the folder, before the mapping starts."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    immutable = False
+    try:
+        if os.access(ro, os.W_OK):                  # root ignores the mode bits
+            res = subprocess.run(["chattr", "+i", str(ro)], capture_output=True)
+            if res.returncode != 0:
+                pytest.skip("no read-only folder can be made here (root, and chattr +i is refused)")
+            immutable = True
+        for option in ("--rrd", "--json"):
+            assert main(["run", "sim:stairs", "--frames", "2", option, str(ro / "x"), "--no-progress"]) == 2
+            err = capsys.readouterr().err
+            assert "cannot write in its folder" in err and str(ro) in err and "Traceback" not in err
+        assert list(ro.iterdir()) == []
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(ro)], check=True)
+        ro.chmod(0o755)
