@@ -3,14 +3,14 @@
 Real recordings rarely come with a target at a measured distance. :func:`run_captures` takes one or
 more static stretches of a recording (a camera that does not move for a few frames: ``--frames
 141-156``), finds the dominant planes of each stretch's per-pixel mean (RANSAC, then a refit along the
-rays; :func:`noise_model.analysis.planes.find_planes`) and writes a capture set (format
+rays; :func:`noise_model.analysis.plane_finder.find_planes`) and writes a capture set (format
 ``d435-captures/1``, docs/capture-set-format.md) with one capture per plane:
 
 * ``depth``: the stretch's frames, uint16 depth units, every pixel (the frames as recorded);
 * ``target``: ``{"kind": "plane", "normal": m, "offset_m": d}``, the plane m . p + d = 0 in the camera
   frame, m pointing towards the camera (m_z < 0), d > 0 its distance;
 * ``mask``: a PNG, non-zero where the pixel's mean lies on the plane within 4 temporal sigmas at its depth
-  (cleaned, see :func:`~noise_model.analysis.planes.find_planes`);
+  (cleaned, see :func:`~noise_model.analysis.plane_finder.find_planes`);
 * ``geometry``: ``"fitted"``: statistics that need a measured distance (bias, scale) are not computed for it;
 * ``fit``: what the fit found (frames, pixels, residuals, the stretch's temporal noise), kept by the reader.
 
@@ -28,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from noise_model.analysis.planes import MASK_N_SIGMA, MIN_PLANE_FRACTION, find_planes, normalised_coordinates
+from noise_model.analysis.plane_finder import MASK_N_SIGMA, MIN_PLANE_FRACTION, find_planes
+from noise_model.analysis.planes import normalised_coordinates
 
 from ..fileio import atomic_folder, check_folder_output
 
@@ -156,7 +157,7 @@ def run_captures(recording, frames, out, *, intrinsics=None, baseline_m: float =
     baseline_m : float
         Stereo baseline [m] written into the camera entry (the D435's 0.050 by default).
     max_planes, min_plane_fraction, n_sigma, seed
-        Of :func:`noise_model.analysis.planes.find_planes`.
+        Of :func:`noise_model.analysis.plane_finder.find_planes`.
     overwrite : bool
         Replace an earlier capture set in ``out``.
 

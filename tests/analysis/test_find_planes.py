@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from noise_model.analysis.planes import MaskedPlane, find_planes, stretch_mean
+from noise_model.analysis.plane_finder import MaskedPlane, find_planes, stretch_mean
 
 K = np.array([[100.0, 0.0, 63.5], [0.0, 100.0, 47.5], [0.0, 0.0, 1.0]])
 H, W = 96, 128
