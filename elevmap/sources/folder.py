@@ -208,10 +208,10 @@ class DepthFolderSource(FrameSource):
         if not root.is_dir():
             raise ValueError(f"{root}: no such folder")
         self.folder = root
-        self.files = _pngs(root)
-        if not self.files and _pngs(root / "depth"):  # Open3D / polylidar layout: root/depth/*.png
-            self.folder = root / "depth"
-            self.files = _pngs(self.folder)
+        sub = root / "depth"
+        if sub.is_dir() and _pngs(sub):                 # Open3D / polylidar layout: root/depth/*.png; the
+            self.folder = sub                           # root's own PNGs are then colour or figures
+        self.files = _pngs(self.folder)
         if not self.files:
             raise ValueError(f"{root}: no .png depth images in the folder (nor in {root.name}/depth)")
         if intrinsics is None:

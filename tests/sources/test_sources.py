@@ -519,6 +519,19 @@ def _png(path: Path, img: np.ndarray) -> None:
 
 
 @needs_cv2
+def test_folder_root_with_a_colour_picture_reads_its_depth_subfolder(tmp_path, rng):
+    """A dataset root holding a figure PNG beside depth/ (the aims_slam layout) maps depth/."""
+    (tmp_path / "depth").mkdir()
+    img = rng.integers(1, 65536, (6, 8), dtype=np.uint16)
+    _png(tmp_path / "depth" / "0.png", img)
+    _png(tmp_path / "figure.png", np.zeros((6, 8, 3), np.uint8))
+    with DepthFolderSource(tmp_path, [[5.0, 0, 3.5], [0, 5.0, 2.5], [0, 0, 1]]) as src:
+        assert src.folder == tmp_path / "depth"
+        (frame,) = list(src)
+    np.testing.assert_array_equal(frame.depth, img)
+
+
+@needs_cv2
 def test_folder_without_stamps_natural_order_and_errors(tmp_path, rng):
     d = tmp_path / "depth"
     d.mkdir()
