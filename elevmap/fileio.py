@@ -388,24 +388,39 @@ def atomic_folder(path):
     try:
         yield tmp
         os.chmod(tmp, new_file_mode(path, folder=True))
-        if path.exists() and _exchange(tmp, path):
-            pass                                    # tmp now holds the previous folder
-        elif path.exists():
-            old = _temp_name(path, _OLD)
-            os.rename(path, old)
-            _register(old)
-            os.rename(tmp, path)
-            _unregister(tmp)
-            tmp = old
-        else:
-            os.rename(tmp, path)
-            _unregister(tmp)
-            return
+        with _signals_blocked():                    # no interruption between the renames of a swap
+            if not path.exists():
+                os.rename(tmp, path)
+                _unregister(tmp)
+                return
+            if not _exchange(tmp, path):
+                old = _temp_name(path, _OLD)
+                os.rename(path, old)
+                try:
+                    os.rename(tmp, path)
+                except BaseException:
+                    os.rename(old, path)            # the previous folder back in place
+                    raise
+                _unregister(tmp)
+                tmp = old
+                _register(tmp)
+        # tmp now holds the previous folder
         _fsync_dir(path.parent)
         release_temp(tmp, remove=True)
     except BaseException:
         release_temp(tmp, remove=True)
         raise
+
+
+@contextlib.contextmanager
+def _signals_blocked():
+    """Hold SIGINT, SIGTERM and SIGHUP back for the block (they are delivered after it)."""
+    sigs = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _fsync_dir(directory) -> None:

@@ -153,3 +153,23 @@ def test_a_killed_two_rename_swap_is_undone_by_the_next_run(tmp_path):
     (new / "captures.json").write_text('{"new": 1}')
     remove_leftovers(out)
     assert tree(tmp_path) == before and temporaries(tmp_path) == []
+
+
+def test_folder_swap_without_an_atomic_exchange(tmp_path, monkeypatch):
+    """The two-rename swap (systems without renameat2): the new folder replaces the old whole; a failure
+    inside the block keeps the old one."""
+    import elevmap.fileio as fileio
+
+    monkeypatch.setattr(fileio, "_exchange", lambda a, b: False)
+    out = tmp_path / "set"
+    out.mkdir()
+    (out / "captures.json").write_text("old")
+    with pytest.raises(RuntimeError):
+        with fileio.atomic_folder(out) as tmp:
+            (tmp / "captures.json").write_text("new")
+            raise RuntimeError("failed before the end")
+    assert tree(tmp_path) == {"set/captures.json": hashlib.sha256(b"old").hexdigest()}
+    with fileio.atomic_folder(out) as tmp:
+        (tmp / "captures.json").write_text("new")
+    assert tree(tmp_path) == {"set/captures.json": hashlib.sha256(b"new").hexdigest()}
+    assert temporaries(tmp_path) == []
