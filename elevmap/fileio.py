@@ -342,7 +342,7 @@ def atomic_output(path, suffix: str | None = None):
         release_temp(tmp)
     except OSError as exc:
         release_temp(tmp, remove=True)
-        if exc.filename is None:          # a failed write (a full disk) names no file: name the output
+        if exc.filename is None and exc.errno is not None:    # a failed write (a full disk) names no file
             raise OSError(exc.errno, exc.strerror, str(path)) from None
         raise
     except BaseException:
