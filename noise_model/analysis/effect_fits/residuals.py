@@ -150,8 +150,10 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
     is the bin's mean of sigma(c)^2 = (c0 + c1 z + c2 z^2 + c_theta z^1.5 theta / (pi/2 - theta)^2)^2
     over its pixels; residuals (model - y) / sd(y), sd(y)^2 ~ 2 (v_real^2 + v_base^2) / (n (F - 1)),
     non-negative coefficients (bounded least squares started from the non-negative linear fit of
-    sqrt(y)). Bins whose sigma exceeds 15 % of z are left out (the reference noise is truncated at
-    z <= 0 there).
+    sqrt(y)). Bins whose real sigma exceeds 15 % of z are left out; where the reference's sigma does
+    (its noise is truncated at z <= 0 there, so the base simulations cannot give f and e), f = 1 and
+    e = the rounding's variance, so that a real camera quieter than the paper's angle term at grazing
+    angles still constrains the fit.
 
     Single frames: a capture of one frame has no temporal variance; the squared residual of its frame
     about the target's best plane (:func:`_pixel_variances`) stands in, pixel by pixel (the paper's own
@@ -195,17 +197,19 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
                 continue
             s2 = float(np.mean(sref[sel] ** 2))
             v_r, v_b = float(np.mean(vr[sel])), float(np.mean(vb[sel]))
-            if vb2 is not None:
+            zz, tt = zs[sel], ts[sel]
+            truncated = float(np.max(sref[sel])) > 0.15 * float(np.min(zz))
+            if vb2 is not None and not truncated:
                 f = (float(np.mean(vb2[sel])) - v_b) / ((_AXIAL_SCALE2 ** 2 - 1.0) * s2)
                 if not f > 0.05:
                     continue
                 e = v_b - f * s2
             else:
-                f, e = 1.0, g.depth_scale ** 2 / 12.0            # only the rounding (Sheppard)
+                # only the rounding (Sheppard); also where the reference noise is truncated at z <= 0, so
+                # that the base simulations cannot give f and e, but the real variance still measures sigma
+                f, e = 1.0, g.depth_scale ** 2 / 12.0
             y2 = (v_r - e) / f
-            zz, tt = zs[sel], ts[sel]
-            if (y2 <= 0 or math.sqrt(y2) > 0.15 * float(np.mean(zz))
-                    or float(np.max(sref[sel])) > 0.15 * float(np.min(zz))):
+            if y2 <= 0 or math.sqrt(y2) > 0.15 * float(np.mean(zz)):
                 continue
             gth = zz * np.sqrt(zz) * angle_gain(tt, 1.0)   # the regressor of the angle coefficient
             bins.append(np.column_stack([np.ones_like(zz), zz, zz * zz, gth]))
