@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from numba import njit
 
-import noise_model as nm
 from conftest import random_pose_cov, random_transform
 from noise_model import D435, SensorModel, axial_sigma, axial_variance, depth_to_map_points
 from noise_model import depth_to_map_points_reference, expected_rms_error, point_covariances
