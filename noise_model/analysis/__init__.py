@@ -6,6 +6,7 @@ No files, no rerun: the commands in ``elevmap.commands`` read capture sets and c
 * :mod:`.planes` -- camera-frame planes and their fits (total least squares, robust, along rays, RANSAC
   on a region): one :class:`~.planes.PlaneFit`.
 * :mod:`.characterization` -- the paper's characterisation: axial and lateral noise, the sigma_z model fit.
+* :mod:`.family_fit` -- the disparity family's fit and both families' held-out errors (blocks of distance, angle).
 * :mod:`.detection` -- finding a target board in an image (OpenCV, imported by its callers only).
 * :mod:`.effect_fits` -- one fit per depth effect of :mod:`noise_model.sim.effects` (one ``FitSpec`` each).
 * :mod:`.diagnosis` -- the sim-to-real gap: strata and per-stratum sums (numba + NumPy reference), the
