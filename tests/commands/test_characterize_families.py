@@ -94,6 +94,21 @@ def test_characterize_fits_both_families_on_plane_captures_and_predicts_another_
     assert on_disk["family"] == "disparity" and "_z_pixels_m" not in json.dumps(on_disk)
 
 
+def test_only_and_predict_check_their_inputs_before_writing(tmp_path):
+    rng = np.random.default_rng(4)
+    _write_set(tmp_path / "set", rng, {"wall20": FIT_PLANES["wall20"]}, n_frames=4)
+    with pytest.raises(ValueError, match="nope"):
+        run_characterize(tmp_path / "set", json_path=tmp_path / "r.json", show_progress=False, only="wall20,nope")
+    with pytest.raises(ValueError, match="captures.json"):
+        run_characterize(tmp_path / "set", json_path=tmp_path / "r.json", show_progress=False,
+                         predict_dir=tmp_path / "missing")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["set"]
+    # one plane at one angle: the disparity family with s1 fixed
+    report = run_characterize(tmp_path / "set", show_progress=False, only="wall20")
+    assert report["only"] == ["wall20"] and report["family"] == "disparity"
+    assert report["fit_disparity"]["s1_fixed"] and report["model"]["format"] == "elevmap-sensor-model/2"
+
+
 # ------------------------------------------------------------------------------------------------
 # the genuine aims_slam recording: a model fitted on the wall predicts the floors
 
