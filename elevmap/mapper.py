@@ -46,6 +46,10 @@ class Camera:
         Another point-noise model in place of the paper's (for comparisons):
         ``f(points_cam (N, 3), T_map_cam (4, 4), pose_cov (6, 6) or None) -> (height_var (N,),
         horizontal_cov (N, 3))`` in the map frame [m^2]. None: the paper's model (numba kernel).
+    bin_at_plane : bool
+        Place each point's x, y where its ray meets the local plane (in a window of two surfaces: the
+        nearer of that and the surface median), as :func:`noise_model.depth_to_map_points` does by default;
+        False: at the measured depth.
     """
 
     name: str
@@ -58,6 +62,7 @@ class Camera:
     min_depth_m: float = MIN_DEPTH_M
     max_depth_m: float = MAX_DEPTH_M
     variance_model: object = None
+    bin_at_plane: bool = True
 
     def __post_init__(self):
         self.K = check_intrinsics(self.K, f"camera {self.name!r} K")
@@ -71,6 +76,8 @@ class Camera:
             raise ValueError(f"camera {self.name!r}: model must be a noise_model.SensorModel")
         if self.variance_model is not None and not callable(self.variance_model):
             raise ValueError(f"camera {self.name!r}: variance_model must be callable")
+        if not isinstance(self.bin_at_plane, (bool, np.bool_)):
+            raise ValueError(f"camera {self.name!r}: bin_at_plane must be True or False, got {self.bin_at_plane!r}")
 
 
 class Mapper:
@@ -155,7 +162,8 @@ class Mapper:
         if impl not in ("numba", "numpy"):
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
         t0 = time.perf_counter()
-        kwargs = dict(depth_scale=scale, model=cam.model, min_depth_m=cam.min_depth_m, max_depth_m=cam.max_depth_m)
+        kwargs = dict(depth_scale=scale, model=cam.model, min_depth_m=cam.min_depth_m, max_depth_m=cam.max_depth_m,
+                      bin_at_plane=cam.bin_at_plane)
         if impl == "numba":
             pts = nm.depth_to_map_points(d, cam.K, T_map_cam, pose_cov, workspace=self._workspaces[camera],
                                          nthreads=self.nthreads, **kwargs)

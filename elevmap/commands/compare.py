@@ -78,7 +78,6 @@ import numpy as np
 import noise_model as nm
 from noise_model.alternatives import make_variance_model
 from noise_model.checks import check_positive_scalar
-from noise_model.sim.effects import EFFECTS, Effect, make_effect
 
 from ..map.elevation_map import ElevationMap
 from ..frame import Frame
@@ -86,10 +85,11 @@ from ..fileio import check_outputs, json_ready
 from ..map.fusion import FusionParams
 from ..mapper import Camera, Mapper
 from ..pipeline import MappingConfig, edge_band, map_error
+from .compare_args import REALITIES, apply_settings, camera_settings, parse_mappers, parse_reality, parse_settings
 
-__all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "REALITIES", "DEFAULT_CAP", "DISPARITY_SIGMA_PX",
-           "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "run_compare", "render_walk", "parse_effects", "effects_help",
-           "parse_mappers", "parse_reality", "MapperSpec", "mapper_specs", "json_ready", "frames_digest",
+__all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "DEFAULT_CAP", "DISPARITY_SIGMA_PX",
+           "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "run_compare", "render_walk", "MapperSpec", "mapper_specs",
+           "json_ready", "frames_digest",
            "most_confident"]
 
 #: Mappers without a cap, in report order.
@@ -100,8 +100,6 @@ ALL_MAPPERS = BASE_MAPPERS + tuple(f"{b}_capped" for b in BASE_MAPPERS)
 MAPPERS = BASE_MAPPERS + ("fitted_capped",)
 #: Scenes of a comparison (those of :class:`elevmap.sources.simulated.SimulatedWalk`).
 SCENES = ("stairs", "boxes", "slope", "rough", "demo")
-#: Simulated realities by name; a path ending in ``.json`` names a gap report (:func:`parse_reality`).
-REALITIES = ("reference", "stereo")
 #: sigma_d of the ``disparity`` mapper [px]: Intel's typical subpixel RMS of the D4 matcher on a
 #: textured target (librealsense's depth-quality notes), the one number a user finds without measuring.
 DISPARITY_SIGMA_PX = 0.08
@@ -223,156 +221,6 @@ def _check_cap(cap) -> float:
     if not math.isfinite(c) or c < 1:
         raise ValueError(f"cap (points per cell and frame) must be finite and >= 1, got {cap!r}")
     return c
-
-
-# ---------------------------------------------------------------------------------------------
-# arguments
-# ---------------------------------------------------------------------------------------------
-def _number(text: str, where: str):
-    t = text.strip()
-    if t.lower() in ("none", "null"):
-        return None
-    try:
-        v = float(t)
-    except ValueError:
-        raise ValueError(f"{where}: {text!r} is not a number") from None
-    return v
-
-
-def effects_help() -> str:
-    """One line per effect of :data:`noise_model.sim.effects.EFFECTS`: its name and default parameters."""
-    import inspect
-
-    lines = []
-    width = max(len(n) for n in EFFECTS)
-    for name, factory in EFFECTS.items():
-        params = [f"{k}={v.default!r}" if v.default is not None else f"{k}=..." for k, v in
-                  inspect.signature(factory).parameters.items()
-                  if k not in ("model",) and v.default is not inspect.Parameter.empty]
-        lines.append(f"  {name:{width}s}  {', '.join(params)}")
-    return "\n".join(lines)
-
-
-def parse_effects(spec) -> list[Effect]:
-    """Effects from a ``--sim-effects`` string or a sequence of effects / names.
-
-    The string is a comma-separated list of effect names (:data:`noise_model.sim.effects.EFFECTS`), each
-    optionally followed by ``:key=value`` overrides of its defaults, several separated by ``:`` or by
-    commas: ``correlated_noise``, ``correlated_noise:length_px=5:sigma_z_fraction=0.5,depth_bias``,
-    ``correlated_noise:length_px=5,sigma_z_fraction=0.5``. ``none`` or an empty string: no effect.
-    A path ending in ``.json``: the effects of a gap report (``elevmap gap --json``), with their
-    fitted parameters, in the simulator's canonical order (their pixel parameters are in the pixels
-    of the diagnosed stream: simulate the walk at that resolution).
-
-    Returns
-    -------
-    list of Effect
-
-    Raises
-    ------
-    ValueError
-        Unknown effect or parameter, malformed override, bad value.
-    """
-    if spec is None:
-        return []
-    if isinstance(spec, Effect):
-        return [spec]
-    if not isinstance(spec, str):
-        out = []
-        for item in spec:
-            if isinstance(item, Effect):
-                out.append(item)
-            elif isinstance(item, str):
-                out += parse_effects(item)
-            else:
-                raise ValueError(f"sim effects must be names or noise_model.sim.effects.Effect objects, got {item!r}")
-        return out
-    text = spec.strip()
-    if text.lower() in ("", "none"):
-        return []
-    if text.lower().endswith(".json"):          # the effects a gap diagnosis selected and fitted
-        from noise_model.sim.effects import canonical_order, effects_from_report
-
-        return canonical_order(effects_from_report(text))
-    entries: list[tuple[str, dict]] = []
-    for token in (t.strip() for t in text.split(",")):
-        if not token:
-            raise ValueError(f"--sim-effects {spec!r}: empty entry")
-        parts = [p.strip() for p in token.split(":")]
-        if "=" in parts[0]:
-            if not entries:
-                raise ValueError(f"--sim-effects {spec!r}: {token!r} has no effect name before it")
-            name, overrides = entries[-1][0], parts
-        else:
-            name, overrides = parts[0], parts[1:]
-            if name not in EFFECTS:
-                raise ValueError(f"unknown effect {name!r}; effects: {', '.join(EFFECTS)}")
-            entries.append((name, {}))
-        for kv in overrides:
-            if kv.count("=") != 1 or not kv.split("=")[0].strip():
-                raise ValueError(f"--sim-effects: override {kv!r} of {name} must be key=value")
-            k, v = (s.strip() for s in kv.split("="))
-            entries[-1][1][k] = _number(v, f"{name}:{k}")
-    return [make_effect(name, **params) for name, params in entries]
-
-
-def parse_mappers(spec) -> tuple[str, ...]:
-    """Mapper names of :data:`ALL_MAPPERS` from a comma-separated string or a sequence (None: :data:`MAPPERS`)."""
-    from noise_model.reporting import check_names
-
-    if spec is None:
-        return MAPPERS
-    return tuple(check_names(spec, "--mappers", ALL_MAPPERS, "mapper"))
-
-
-def parse_reality(reality, sim_effects=None) -> dict:
-    """The walk's reality from ``--reality`` and ``--sim-effects``.
-
-    Parameters
-    ----------
-    reality : str
-        ``"reference"``, ``"stereo"``, or the path of a gap report (``*.json``): the reference simulation
-        plus the effects that report selected, as fitted.
-    sim_effects : str or sequence, optional
-        Effects added to the reference reality (:func:`parse_effects`); not with ``stereo`` or a gap report.
-
-    Returns
-    -------
-    dict
-        ``kind`` ("reference", "stereo" or "gap"), ``sensor`` ("reference" or "stereo"), ``effects`` (list of
-        Effect), ``gap_report`` (str or None), ``effects_digest`` (SHA-256 of the effects' names and
-        parameters, None without effects).
-
-    Raises
-    ------
-    ValueError
-        Unknown reality, an unreadable gap report, or effects where the reality takes none.
-    """
-    if not isinstance(reality, str):
-        raise ValueError(f"reality must be a string, got {reality!r}")
-    effects = parse_effects(sim_effects)
-    if reality.lower().endswith(".json"):
-        if effects:
-            raise ValueError("a gap report is the reality's effects already: give --sim-effects or a gap report "
-                             "as --reality, not both")
-        effects = parse_effects(reality)
-        kind, sensor, gap = "gap", "reference", reality
-    elif reality in REALITIES:
-        kind = sensor = reality
-        gap = None
-        if reality == "stereo" and effects:
-            raise ValueError("the stereo reality makes its own noise: it takes no sim effects")
-    else:
-        raise ValueError(f"unknown reality {reality!r}; realities: {', '.join(REALITIES)} or a gap report "
-                         "(elevmap gap --json PATH)")
-    digest = None
-    if effects:
-        import json
-
-        text = json.dumps([[e.name, {k: v for k, v in sorted(dict(e.params).items())}] for e in effects],
-                          default=float)
-        digest = hashlib.sha256(text.encode()).hexdigest()
-    return {"kind": kind, "sensor": sensor, "effects": effects, "gap_report": gap, "effects_digest": digest}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -556,7 +404,8 @@ class _Run:
         self.digest = hashlib.sha256()
 
 
-def _map_frames(frames, specs, config: MappingConfig, *, nthreads=None, show_progress=False, on_frame=None):
+def _map_frames(frames, specs, config: MappingConfig, *, nthreads=None, show_progress=False, on_frame=None,
+                camera: dict | None = None):
     """Feed every frame to every mapper, interleaved (frame k to all mappers, then frame k + 1).
 
     Interleaving exposes all mappers alike to whatever else the machine is doing, so their times
@@ -582,7 +431,7 @@ def _map_frames(frames, specs, config: MappingConfig, *, nthreads=None, show_pro
             if frame.camera not in run.mapper.cameras:
                 run.mapper.add_camera(Camera(frame.camera, frame.K, frame.width, frame.height,
                                              depth_scale=frame.depth_scale, model=run.spec.model,
-                                             variance_model=run.spec.variance_model))
+                                             variance_model=run.spec.variance_model, **(camera or {})))
             if config.follow:
                 run.emap.move_to(T[:2, 3])
             _digest_update(run.digest, frame)
@@ -598,7 +447,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
                 mappers=None, cap: float = DEFAULT_CAP, width: int = 424, height: int = 240,
                 config: MappingConfig | None = None, max_variance: float | None = COMPARE_MAX_VARIANCE,
                 rrd_path=None, show_progress: bool = True, nthreads: int | None = None, reality: str = "reference",
-                preset: str = "default", work_dir=None, fitted_model=None, fit_dir=None) -> dict:
+                preset: str = "default", work_dir=None, fitted_model=None, fit_dir=None, settings=None) -> dict:
     """One simulated walk, the same frames through several mappers, each scored against the truth.
 
     Parameters
@@ -610,7 +459,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     seed : int
         Seed of the scene, noise and effects.
     sim_effects : str or sequence of Effect or str, optional
-        Effects added to the reference reality (see :func:`parse_effects`).
+        Effects added to the reference reality (see :func:`elevmap.commands.compare_args.parse_effects`).
     mappers : str or sequence of str, optional
         Names of :data:`ALL_MAPPERS` (default :data:`MAPPERS`, in that order).
     cap : float
@@ -630,7 +479,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         numba threads.
     reality : str
         ``"reference"`` (default), ``"stereo"`` (the physical D435, no ``sim_effects``) or a gap report's
-        path (:func:`parse_reality`).
+        path (:func:`elevmap.commands.compare_args.parse_reality`).
     preset : str
         Matcher preset of the physical D435 ("default", "high_accuracy").
     work_dir : path or WorkDir, optional
@@ -641,6 +490,9 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         ``work_dir`` (or ``fit_dir``) on the paper's grid simulated with this reality.
     fit_dir : path or WorkDir, optional
         Work folder for the fitted model only (no frames cached), when ``work_dir`` is None.
+    settings : str or dict, optional
+        Map settings applied to ``config`` for every mapper (``--set``, :func:`elevmap.commands.compare_args.parse_settings`): the
+        fusion rules switched off or changed, to measure what each buys.
 
     Returns
     -------
@@ -654,6 +506,8 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
         raise ValueError("config must be an elevmap.pipeline.MappingConfig")
     if max_variance is not None:
         config = _replace(config, fusion=_replace(config.fusion, max_variance=_check_max_variance(max_variance)))
+    settings = parse_settings(settings)
+    config = apply_settings(config, settings)
     names = parse_mappers(mappers)
     real = parse_reality(reality, sim_effects)
     effects = real["effects"]
@@ -682,7 +536,8 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     results, maps = {}, {}
     try:
         on_frame = None if logger is None else logger.frame_callback(truth)
-        runs = _map_frames(frames, specs, config, nthreads=nthreads, show_progress=show_progress, on_frame=on_frame)
+        runs = _map_frames(frames, specs, config, nthreads=nthreads, show_progress=show_progress, on_frame=on_frame,
+                           camera=camera_settings(settings))
         unchanged = frames_digest(frames) == digest
         for run in runs:
             got = run.digest.hexdigest()
@@ -702,7 +557,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
                   "height": int(height), "reality": real["kind"], "gap_report": real["gap_report"],
                   "preset": preset if real["sensor"] == "stereo" else None,
                   "sim_effects": [{"name": e.name, "params": dict(e.params)} for e in effects],
-                  "cap": _check_cap(cap),
+                  "cap": _check_cap(cap), "settings": settings,
                   "map": {"length_m": config.length_m, "resolution_m": config.resolution_m,
                           "visibility_cleanup": config.visibility_cleanup, "follow": config.follow,
                           "fusion": {k: getattr(config.fusion, k) for k in config.fusion.__dataclass_fields__}},

@@ -12,9 +12,8 @@ import noise_model as nm
 from conftest import random_pose_cov, random_transform
 from elevmap import Mapper
 from elevmap.cli import main
-from elevmap.commands.compare import (
-    ALL_MAPPERS, COMPARE_MAX_VARIANCE, MAPPERS, REPORT_KEYS, most_confident, parse_effects, parse_reality, run_compare,
-)
+from elevmap.commands.compare import COMPARE_MAX_VARIANCE, MAPPERS, REPORT_KEYS, most_confident, run_compare
+from elevmap.commands.compare_args import parse_effects, parse_reality, parse_settings
 from noise_model.alternatives import anybotics_d435, constant, make_variance_model, quadratic
 from noise_model.sim.effects import correlated_noise, depth_bias, gaussian_random_field, make_effect
 
@@ -440,6 +439,30 @@ def test_the_work_folder_caches_the_walk_and_the_fitted_model(tmp_path):
         pytest.approx(nm.axial_sigma(1.0, 0.0), rel=0.3)
     with pytest.raises(ValueError, match="is a file"):
         WorkDir(tmp_path / "work" / "frames" / next(p.name for p in (tmp_path / "work" / "frames").iterdir()))
+
+
+def test_settings_switch_fusion_rules_off_for_every_mapper():
+    assert parse_settings(None) == {} and parse_settings("") == {}
+    s = parse_settings("spread_alpha=none,neighbour_radius=0,visibility_cleanup=false,min_variance=4e-6,"
+                       "bin_at_plane=false,neighbour_estimator=dersimonian_laird,scatter_inflation=false")
+    assert s == {"spread_alpha": None, "neighbour_radius": 0, "visibility_cleanup": False, "min_variance": 4e-6,
+                 "bin_at_plane": False, "neighbour_estimator": "dersimonian_laird", "scatter_inflation": False}
+    assert isinstance(s["neighbour_radius"], int)
+    r = run_compare("stairs", 2, mappers="paper,quadratic", show_progress=False,
+                    settings="neighbour_radius=0,visibility_cleanup=false")
+    assert r["map"]["fusion"]["neighbour_radius"] == 0 and r["map"]["visibility_cleanup"] is False
+    assert r["settings"] == {"neighbour_radius": 0, "visibility_cleanup": False}
+    # binning at the measured depth moves points: another map from the same frames
+    b = run_compare("stairs", 2, mappers="paper", show_progress=False, settings="bin_at_plane=false")
+    assert b["frames_digest"] == r["frames_digest"] and b["settings"] == {"bin_at_plane": False}
+    assert b["mappers"]["paper"]["rmse_m"] != run_compare("stairs", 2, mappers="paper",
+                                                           show_progress=False)["mappers"]["paper"]["rmse_m"]
+    for bad, msg in (("gate=3", "unknown setting"), ("neighbour_radius", "KEY=VALUE"),
+                     ("scatter_inflation=yes", "true or false"), ("min_points=x", "not a number")):
+        with pytest.raises(ValueError, match=msg):
+            parse_settings(bad)
+    with pytest.raises(ValueError, match="neighbour_radius"):
+        run_compare("stairs", 1, mappers="paper", show_progress=False, settings="neighbour_radius=-1")
 
 
 def test_seed_summary_and_criteria_by_hand():
