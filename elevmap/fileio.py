@@ -36,8 +36,7 @@ from noise_model.reporting import json_ready
 
 __all__ = ["check_outputs", "atomic_output", "atomic_folder", "write_json_atomic", "json_ready", "new_file_mode",
            "new_temp_file", "release_temp", "remove_leftovers", "remove_temporaries", "handle_signals", "Interrupted",
-           "TEMP_TAG",
-           "input_files", "check_folder_output"]
+           "TEMP_TAG", "input_files", "check_folder_output"]
 
 #: Marks the name of every temporary file or folder an output is written to.
 TEMP_TAG = "elevmap-tmp"
