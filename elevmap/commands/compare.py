@@ -53,6 +53,8 @@ Report (JSON, NaN written as null)::
                         "median_abs_m", "mean_error_m", "flat_coverage_2sigma", "known_cells",
                         "edge_cells", "edge_coverage_1sigma", "edge_coverage_2sigma", "edge_nll",
                         "edge_mean_error_m", "edge_known_fraction", "ms_per_frame_p95", "frames_digest",
+                        "edge_profile": [{"rings", "cells", "rmse_m", "mean_error_m", "coverage_2sigma",
+                                          "nll_sum", "large_errors"}, ...] (edge_profile),
                         "model": {...}}, ...},
      "edge_band_cells": int (the band's cells some mapper knows),
      "common": {"cells": int, "mappers": {name: {"rmse_m", "p95_abs_m", "nll", "coverage_1sigma",
@@ -88,7 +90,8 @@ from ..pipeline import MappingConfig, edge_band, map_error
 from .compare_args import REALITIES, apply_settings, camera_settings, parse_mappers, parse_reality, parse_settings
 
 __all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "DEFAULT_CAP", "DISPARITY_SIGMA_PX",
-           "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "run_compare", "render_walk", "MapperSpec", "mapper_specs",
+           "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "EDGE_RINGS", "edge_profile", "run_compare", "render_walk",
+           "MapperSpec", "mapper_specs",
            "json_ready", "frames_digest",
            "most_confident"]
 
@@ -376,6 +379,62 @@ def _score(emap: ElevationMap, truth, times) -> dict:
     return out
 
 
+#: Rings of cells about the step edges for :func:`edge_profile`: (first, last) distance from the edge
+#: band in 4-connected cell steps (0: the band itself, within two cells of a step).
+EDGE_RINGS = ((0, 0), (1, 3), (4, 8), (9, None))
+
+
+def edge_profile(height, variance, truth) -> list[dict]:
+    """Scores of a map's known cells by their distance from the step edges of the true terrain.
+
+    Where the sensor puts an edge's points shows here: edge fattening and bleeding make the band's mean
+    error positive on the lower side, flying pixels and points binned at the wrong surface leave errors
+    rings away from the band.
+
+    Parameters
+    ----------
+    height, variance : ndarray, shape (H, W) [m], [m^2]
+        The map's known layers (NaN where unknown).
+    truth : ndarray, shape (H, W) [m]
+        The true height at the cell centres.
+
+    Returns
+    -------
+    list of dict
+        One per ring of :data:`EDGE_RINGS`: ``rings`` (first, last distance), ``cells``, ``rmse_m``,
+        ``mean_error_m``, ``coverage_2sigma``, ``nll_sum`` (the ring's share of the NLL sum, in nats),
+        ``large_errors`` (cells with |error| > 0.2 m).
+    """
+    band = edge_band(truth)
+    dist = np.full(band.shape, np.iinfo(np.int32).max, dtype=np.int64)
+    cur = band.copy()
+    dist[cur] = 0
+    last = max(r[0] for r in EDGE_RINGS)
+    for step in range(1, last + 1):
+        grown = cur.copy()
+        grown[1:] |= cur[:-1]
+        grown[:-1] |= cur[1:]
+        grown[:, 1:] |= cur[:, :-1]
+        grown[:, :-1] |= cur[:, 1:]
+        dist[grown & ~cur] = step
+        cur = grown
+    known = np.isfinite(height) & np.isfinite(variance)
+    err = np.where(known, height - truth, 0.0)
+    var = np.where(known, variance, 1.0)
+    out = []
+    for lo, hi in EDGE_RINGS:
+        ring = known & (dist >= lo) & ((dist <= hi) if hi is not None else True)
+        e, v = err[ring], var[ring]
+        n = int(ring.sum())
+        out.append({"rings": [lo, hi], "cells": n,
+                    "rmse_m": float(np.sqrt(np.mean(e ** 2))) if n else math.nan,
+                    "mean_error_m": float(np.mean(e)) if n else math.nan,
+                    "coverage_2sigma": float(np.mean(np.abs(e) <= 2.0 * np.sqrt(v))) if n else math.nan,
+                    "nll_sum": float(np.sum(0.5 * np.log(2 * np.pi * v) + 0.5 * e ** 2 / v)),
+                    "large_errors": int(np.sum(np.abs(e) > 0.2))})
+    return out
+
+
 def _edge_known_fractions(maps: dict, truth) -> tuple[int, dict]:
     """The step-edge band's cells that some mapper knows (the band the walk saw), and per mapper the
     fraction of them it knows."""
@@ -549,8 +608,11 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
             results[run.spec.name] = score
             maps[run.spec.name] = run.emap
         band_cells, band_known = _edge_known_fractions(maps, truth)
+        tr = _truth_grid(next(iter(maps.values())), truth)
         for name, frac in band_known.items():
             results[name]["edge_known_fraction"] = frac
+            results[name]["edge_profile"] = edge_profile(maps[name].known_layer("elevation"),
+                                                         maps[name].known_layer("variance"), tr)
         common = _common_scores(maps, truth)
         matched = _matched_scores(maps, truth)
         report = {"scene": scene, "frames": len(frames), "seed": int(seed), "width": int(width),

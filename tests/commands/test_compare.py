@@ -465,6 +465,26 @@ def test_settings_switch_fusion_rules_off_for_every_mapper():
         run_compare("stairs", 1, mappers="paper", show_progress=False, settings="neighbour_radius=-1")
 
 
+def test_edge_profile_by_hand():
+    from elevmap.commands.compare import edge_profile
+
+    truth = np.zeros((1, 20))
+    truth[0, 10:] = 0.3                              # a step between columns 9 and 10: band = columns 7..12
+    h = truth.copy()
+    h[0, 9] = 0.3                                    # the upper level bled one cell over the edge
+    h[0, 0] = 0.5                                    # a flying pixel 7 cells from the band
+    h[0, 19] = np.nan                                # unknown
+    v = np.full((1, 20), 0.01 ** 2)
+    rings = edge_profile(h, v, truth)
+    assert [r["rings"] for r in rings] == [[0, 0], [1, 3], [4, 8], [9, None]]
+    assert [r["cells"] for r in rings] == [6, 6, 7, 0]         # 19 known: band 7..12, rings 4..6 and 13..15, rest
+    assert rings[0]["mean_error_m"] == pytest.approx(0.3 / 6) and rings[0]["large_errors"] == 1
+    assert rings[0]["coverage_2sigma"] == pytest.approx(5 / 6)
+    assert rings[2]["rmse_m"] == pytest.approx(np.sqrt(0.25 / 7)) and rings[2]["large_errors"] == 1
+    nll0 = 0.5 * np.log(2 * np.pi * 1e-4)
+    assert rings[1]["nll_sum"] == pytest.approx(6 * nll0) and math.isnan(rings[3]["rmse_m"])
+
+
 def test_seed_summary_and_criteria_by_hand():
     from elevmap.commands.compare_seeds import SUMMARY_KEYS, criteria, format_seeds_table, summarise
 
