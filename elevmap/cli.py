@@ -394,7 +394,7 @@ def _cmd_run(args) -> int:
 
         bag_layout(ros["bag_out"])
         _check_outputs({"--bag-out": ros["bag_out"], "--rrd": args.rrd, "--json": args.json}, args.overwrite,
-                       inputs=[args.source])
+                       inputs=[args.source, args.poses, args.config, args.intrinsics])
     if ros["map_rate"] is not None and not (ros["bag_out"] or ros["foxglove"] is not None):
         raise ValueError("--map-rate goes with --bag-out or --foxglove")
     src = open_source(args.source, poses=args.poses, intrinsics=args.intrinsics, frames=args.frames,
