@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import sys
 import textwrap
+from pathlib import Path
 
 
 __all__ = ["main", "build_parser"]
@@ -69,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--rrd", metavar="PATH", help="write a rerun recording of the run")
         p.add_argument("--spawn", action="store_true", help="stream to a rerun viewer")
         p.add_argument("--config", metavar="FILE.toml", help="settings: [map] and [map.fusion] tables")
+        p.add_argument("--model", metavar="MODEL.json",
+                       help="sensor model file from `elevmap characterize` (default: the paper's D435)")
         p.add_argument("--poses", metavar="FILE", help="pose file (TUM text or Open3D .log) for any source")
         p.add_argument("--intrinsics", metavar="FILE.json", help="intrinsics of a PNG folder")
         p.add_argument("--frames", type=int, default=None, help="frames of a simulated walk")
@@ -356,8 +360,12 @@ def _load_config(path):
     bad = set(doc) - {"map"}
     if bad:
         raise ValueError(f"{path}: unknown table(s) {sorted(bad)}; expected [map] and [map.fusion]")
+    table = doc.get("map", {})
+    if isinstance(table, dict) and isinstance(table.get("sensor_model"), str) and table["sensor_model"]:
+        table = dict(table)                                 # a relative model path is the config file's
+        table["sensor_model"] = str(Path(path).parent / Path(table["sensor_model"]).expanduser())
     try:
-        return MappingConfig.from_dict(doc.get("map", {}))
+        return MappingConfig.from_dict(table)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}: {exc}") from None
 
@@ -383,8 +391,14 @@ def _cmd_run(args) -> int:
     if args.command == "replay" and not str(args.source).lower().endswith(".rrd"):
         raise ValueError(f"{args.source}: replay takes a rerun recording (.rrd); use `elevmap run` for others")
     config = _load_config(args.config)
+    if args.model is not None:
+        config = dataclasses.replace(config, sensor_model=args.model)
+    if config.sensor_model:
+        from noise_model.d435 import SensorModel
+
+        SensorModel.load(config.sensor_model)               # a bad model file fails before any work
     _check_outputs({"--rrd": args.rrd, "--json": args.json}, args.overwrite,
-                   inputs=[args.source, args.poses, args.config, args.intrinsics])
+                   inputs=[args.source, args.poses, args.config, args.intrinsics, config.sensor_model or None])
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
     ros = {k: getattr(args, k, None) for k in ("depth_topic", "map_frame", "base_frame", "bag_out", "map_rate",

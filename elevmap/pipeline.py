@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from noise_model.d435 import D435, SensorModel
+
 from .map.elevation_map import BYTES_PER_CELL, ElevationMap
 from .frame import Frame
 from .map.fusion import FusionParams
@@ -44,6 +46,9 @@ class MappingConfig:
         Sub-sampled points and covariance ellipsoids logged per frame.
     png_depth : bool
         Log uint16 depth losslessly PNG-compressed (replays bit-exact, about half the size).
+    sensor_model : str
+        A sensor model file (``elevmap-sensor-model/1`` or ``/2``, as ``elevmap characterize`` writes
+        it) for every camera of the run; "" = the paper's D435.
     """
 
     length_m: float = 8.0
@@ -57,6 +62,7 @@ class MappingConfig:
     max_points: int = 4000
     max_ellipsoids: int = 300
     png_depth: bool = True
+    sensor_model: str = ""
 
     def __post_init__(self):
         """Types and ranges of every setting, before any work (a file's ``"false"`` or ``0`` included)."""
@@ -68,6 +74,8 @@ class MappingConfig:
             check_bool(getattr(self, name), name)
         for name in ("score_every", "log_every", "mesh_every", "max_points", "max_ellipsoids"):
             check_int(getattr(self, name), name, 1)
+        if not isinstance(self.sensor_model, str):
+            raise ValueError(f"sensor_model must be a file path (a string), got {self.sensor_model!r}")
 
     @classmethod
     def from_dict(cls, d: dict) -> "MappingConfig":
@@ -226,6 +234,7 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     emap = ElevationMap(config.length_m, config.resolution_m, fusion_params=config.fusion,
                         visibility_cleanup=config.visibility_cleanup, nthreads=nthreads)
     mapper = Mapper(emap, nthreads=nthreads)
+    model = SensorModel.load(config.sensor_model) if config.sensor_model else D435
     recording = None
     if rrd_path is not None or spawn:
         from . import viz
@@ -243,7 +252,7 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
                 raise ValueError(f"sources must yield elevmap.frame.Frame records, got {type(frame).__name__}")
             if frame.camera not in mapper.cameras:
                 mapper.add_camera(Camera(frame.camera, frame.K, frame.width, frame.height,
-                                         depth_scale=frame.depth_scale))
+                                         depth_scale=frame.depth_scale, model=model))
             cam = mapper.cameras[frame.camera]
             if not np.array_equal(cam.K, frame.K):
                 raise ValueError(f"camera {frame.camera!r} changed its intrinsics at frame {frame.index}")

@@ -318,6 +318,10 @@ class SensorModel:
         try:
             with open(path) as fh:
                 d = json.load(fh)
+        except FileNotFoundError:
+            raise ValueError(f"{path}: no such sensor model file") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: cannot read the sensor model file ({exc})") from None
         except json.JSONDecodeError as exc:
             raise ValueError(f"{path}: not valid JSON ({exc})") from None
         try:

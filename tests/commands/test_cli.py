@@ -148,3 +148,25 @@ def test_gap_refuses_an_existing_report_without_overwrite(tmp_path, capsys):
     assert main(["gap", "--selftest", "--json", str(out), "--no-progress", "--effects", "invalid_band"]) == 2
     assert "exists; pass --overwrite" in capsys.readouterr().err
     assert out.read_text() == '{"format": "d435-gap/1"}'
+
+
+def test_run_with_a_sensor_model_file(tmp_path, capsys):
+    """`run --model` and `[map] sensor_model` (relative to the config file) map with that model."""
+    import numpy as np
+
+    from noise_model import D435
+
+    D435.with_disparity(0.08).save(tmp_path / "disp.model.json")
+    (tmp_path / "map.toml").write_text('[map]\nsensor_model = "disp.model.json"\n')
+    runs = {}
+    for name, extra in (("paper", []), ("option", ["--model", str(tmp_path / "disp.model.json")]),
+                        ("config", ["--config", str(tmp_path / "map.toml")])):
+        out = tmp_path / f"{name}.json"
+        assert main(["run", "sim:stairs", "--frames", "2", "--no-progress", "--json", str(out), *extra]) == 0
+        runs[name] = json.loads(out.read_text())
+    assert runs["option"]["error"] == runs["config"]["error"]
+    assert runs["option"]["error"]["coverage_2sigma"] != runs["paper"]["error"]["coverage_2sigma"]
+    capsys.readouterr()
+    assert main(["run", "sim:stairs", "--frames", "2", "--model", str(tmp_path / "absent.json")]) == 2
+    assert "absent.json: no such sensor model file" in capsys.readouterr().err
+    assert np.isfinite(runs["option"]["error"]["median_abs_m"])
