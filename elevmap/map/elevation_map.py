@@ -216,7 +216,9 @@ class ElevationMap:
     def _neighbours(self, points_map, origin, impl) -> None:
         """Recompute the neighbourhood spread around the cells this frame touched (its points' bounding
         box, with the camera's position when visibility cleared cells on the rays)."""
-        lo, hi = points_map[:, :2].min(axis=0), points_map[:, :2].max(axis=0)
+        x, y = points_map[:, 0], points_map[:, 1]       # one column at a time: a row-ordered (N, 3)
+        lo = np.array([x.min(), y.min()])               # array's axis-0 reduction is ~10x slower
+        hi = np.array([x.max(), y.max()])
         if origin is not None:
             lo, hi = np.minimum(lo, origin[:2]), np.maximum(hi, origin[:2])
         raw, _ = self.geometry.map_index(np.array([lo, hi]))
