@@ -225,21 +225,22 @@ def _num(x):
 
 
 def realisation_variance(keys, sim_pooled: np.ndarray, other_pooled: np.ndarray) -> np.ndarray:
-    """Variance of each statistic over the realisations of a model's static fields, per stratum.
+    """Variance of the bias over the realisations of a model's static fields, per stratum.
 
-    A static field (a pattern drawn once per capture) makes some statistics of a stratum depend on its
-    realisation: the bias of an image cell is the field's mean over the cell, a cell's residual
-    histogram holds the field's few blobs. Two halves of the real frames share the real field, so the
-    noise floor does not hold this spread, and a model whose field is right in every statistical
-    respect still differs from the real data by it. Two simulations of the model that differ only in
-    the fields' realisation (``sim_pooled``, ``other_pooled``; same frame noise) give (v1 - v2)^2 / 2 per
-    entry, averaged over the local strata (image cells, regions) of each (distance, angle) bin to
-    steady the one-pair estimate.
+    A static field (a pattern drawn once per capture) makes the bias of an image cell the field's mean
+    over the cell: a value of its realisation, whose expectation is 0. Two halves of the real frames
+    share the real field, so the noise floor does not hold this spread, and a model whose field is
+    right in every statistical respect still differs from the real data by it. Two simulations of the
+    model that differ only in the fields' realisation (``sim_pooled``, ``other_pooled``; same frame
+    noise) give (v1 - v2)^2 / 2 per stratum, averaged over the local strata (image cells, regions) of
+    each (distance, angle) bin to steady the one-pair estimate. Only the bias gets it: the other
+    statistics (spreads, correlation, histograms) depend on the realisation to second order only, and
+    widening their floor would let a too strong field hide its own misfit.
 
     Returns
     -------
     ndarray, shape (n_stats, K)
-        Variance in the statistic's units (0 where undefined).
+        Variance in the statistic's units: the bias row, 0 elsewhere and where undefined.
     """
     v1, h1 = statistic_values(sim_pooled[:1])
     v2, h2 = statistic_values(other_pooled[:1])
@@ -249,10 +250,10 @@ def realisation_variance(keys, sim_pooled: np.ndarray, other_pooled: np.ndarray)
     groups: dict = {}
     for k, key in enumerate(keys):
         groups.setdefault(tuple(key[:2]), []).append(k)
+    b = STATISTICS.index("bias_m")
     for idx in groups.values():
-        with np.errstate(invalid="ignore"):
-            m = np.nanmean(r[:, idx], axis=1) if np.isfinite(r[:, idx]).any() else np.zeros(r.shape[0])
-        out[:, idx] = np.nan_to_num(m)[:, None]
+        v = r[b, idx]
+        out[b, idx] = float(np.mean(v[np.isfinite(v)])) if np.isfinite(v).any() else 0.0
     return out
 
 

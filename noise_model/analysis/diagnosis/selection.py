@@ -214,9 +214,9 @@ class Diagnosis:
         """The gap of the model reference + ``effects`` over the captures ``ids``.
 
         A model with static fields (effects with a ``seed`` of their realisation) is simulated a second
-        time with other realisations, and their spread is added to the floor
-        (:func:`~.floor.realisation_variance`): the real data hold one realisation, which no seed fitted
-        to them can reproduce.
+        time with other realisations, and the spread of the cells' bias between them is added to its
+        floor (:func:`~.floor.realisation_variance`): the real data hold one realisation, which no seed
+        fitted to them can reproduce.
         """
         fl = self.floor(ids)
         store = self._ensure(effects, ids)
