@@ -500,7 +500,13 @@ def test_the_lattice_is_found_at_the_devices_fb():
     eff = E.disparity_quantization(5)
     real = [CaptureData.from_units(w, simulate_capture(g, 1, np.random.default_rng(i), effects=[eff]))
             for i, (g, w) in enumerate(zip(geoms, WALLS))]
-    assert E.fit_effect("disparity_quantization", real) == {"subpixel_bits": 5}
+    fit = E.fit_effect("disparity_quantization", real)
+    assert fit["subpixel_bits"] == 5 and fit["fb_rel"] == pytest.approx(rel, abs=2e-4)
+    # the fitted effect puts a simulation at the stated f B on the device's lattice
+    again = [CaptureData.from_units(w, simulate_capture(w, 1, np.random.default_rng(50 + i),
+                                                        effects=[E.disparity_quantization(**fit)]))
+             for i, w in enumerate(WALLS)]
+    assert E.disparity_lattice(again)["cameras"][0]["fb_rel"] == pytest.approx(rel, abs=2e-4)
     found = E.disparity_lattice(real)
     assert found["subpixel_bits"] == 5
     (camera,) = found["cameras"]
@@ -511,7 +517,7 @@ def test_the_lattice_is_found_at_the_devices_fb():
     # data without a lattice: none found, at any f B
     plain = [CaptureData.from_units(g, simulate_capture(g, 1, np.random.default_rng(i))) for i, g in enumerate(WALLS)]
     assert E.disparity_lattice(plain)["subpixel_bits"] is None
-    assert E.fit_effect("disparity_quantization", plain) == {"subpixel_bits": 10}
+    assert E.fit_effect("disparity_quantization", plain) == {"subpixel_bits": 10, "fb_rel": 0.0}
 
 
 def _degenerate_single_frames():

@@ -251,18 +251,24 @@ def _fit_disparity_quantization(real, base, model, rois=None, **_):
     size, depth scale and baseline) and each group's f B is searched over +-:data:`LATTICE_FB_RANGE`
     (:func:`_lattice_group_scan`; f0 at the same f B); f_b and f0_b pool the groups at their own f B,
     so captures of different cameras (e.g. a 424 x 240 stream, whose depth is not on the 848 x 480
-    lattice) neither hide nor fake another's lattice. :func:`disparity_lattice` reports the f B found.
+    lattice) neither hide nor fake another's lattice. :func:`disparity_lattice` reports the f B found;
+    ``fb_rel`` is the relative f B of the camera with the most tested values (0 without a lattice).
     Works on single frames unchanged (it counts values, not frames).
     """
     hists = _lattice_hists(real, base, model, rois)
     if not hists:
         raise ValueError("disparity_quantization: no valid depth in the captures' interiors")
-    bits, _, tested = _lattice_scan(hists)
+    bits, scans, tested = _lattice_scan(hists)
     if not tested:
         raise ValueError("disparity_quantization: fewer than 500 depth values where a 2^-b px lattice is >= 2 "
                          "depth units apart (targets too near for the depth unit, or too few pixels): no lattice "
                          "can be tested")
-    return {"subpixel_bits": 10 if bits is None else bits}
+    rel = 0.0
+    if bits is not None and scans.get(bits):
+        # the effect has one f B: that of the camera with the most tested values
+        _, _, r = max(scans[bits], key=lambda row: row[2]["nr"])
+        rel = float(r["rel"])
+    return {"subpixel_bits": 10 if bits is None else bits, "fb_rel": rel}
 
 
 def disparity_lattice(real: Sequence, model: SensorModel = D435, base_effects=(), *, seed: int = 0,

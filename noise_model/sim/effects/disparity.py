@@ -39,7 +39,7 @@ class _DisparityQuantization(Effect):
     name = "disparity_quantization"
 
     def _apply(self, z, theta, rng, context):
-        fb = _fb(context, self.name)
+        fb = _fb(context, self.name) * (1.0 + self.params.get("fb_rel", 0.0))
         q = float(2 ** self.params["subpixel_bits"])
         d = _to_disparity(fb, z)
         return _to_depth(fb, np.round(d * q) / q)
@@ -84,7 +84,7 @@ def disparity_noise(s_px: float = 0.08) -> Effect:
     return _DisparityNoise({"s_px": check_scalar_range(s_px, "s_px", 0.0, 5.0, open_lo=True)})
 
 
-def disparity_quantization(subpixel_bits: int = 5) -> Effect:
+def disparity_quantization(subpixel_bits: int = 5, fb_rel: float = 0.0) -> Effect:
     """Disparity on a lattice of 2^-subpixel_bits px (E2).
 
     Physics and source (docs/depth-effects.md, E2): the D435 outputs disparity with 5 fractional bits
@@ -94,12 +94,15 @@ def disparity_quantization(subpixel_bits: int = 5) -> Effect:
     12 mm at 2 m for 5 bits, coarser than the 1 mm unit beyond 0.58 m. Signature: comb-shaped
     histograms; the distinct depth values lie on f B / (k 2^-bits) (librealsense #3583: ~5 mm increments).
 
-    Forward model: d = f B / z, d' = round(d 2^bits) / 2^bits, z' = f B / d' (no data where d' = 0);
-    the depth-unit rounding follows in the simulator. Nothing is drawn from ``rng``.
+    Forward model: d = f' B / z, d' = round(d 2^bits) / 2^bits, z' = f' B / d' (no data where d' = 0),
+    with the device's f' B = (1 + ``fb_rel``) f B: the lattice lies where the device's own f B puts it,
+    which differs from the calibration's K[0, 0] * baseline (or from estimated intrinsics) by a fraction
+    of a percent; the depth-unit rounding follows in the simulator. Nothing is drawn from ``rng``.
 
-    ``subpixel_bits`` an integer in [0, 12] (D435: 5; reals are rounded).
+    ``subpixel_bits`` an integer in [0, 12] (D435: 5; reals are rounded); ``fb_rel`` in [-0.05, 0.05].
     """
-    return _DisparityQuantization({"subpixel_bits": check_integer_range(subpixel_bits, "subpixel_bits", 0, 12)})
+    return _DisparityQuantization({"subpixel_bits": check_integer_range(subpixel_bits, "subpixel_bits", 0, 12),
+                                   "fb_rel": check_scalar_range(fb_rel, "fb_rel", -0.05, 0.05)})
 
 
 def depth_bias(scale: float = DEPTH_BIAS_DEFAULTS["scale"], offset_px: float = DEPTH_BIAS_DEFAULTS["offset_px"], *,
@@ -147,6 +150,7 @@ SPECS = (
     EffectSpec("disparity_quantization", disparity_quantization, order=8,
                # 3-6 fractional bits: lattice 1.5-12 mm at 1 m, 5.9-47 mm at 2 m (the D435: 5)
                param_ranges={"subpixel_bits": (3, 6)},
+               valid={"fb_rel": (-0.05, 0.05)},
                integer_params={"subpixel_bits": (0, 12)}),
     EffectSpec("depth_bias", depth_bias, order=1,
                # -1 to -2.5 % scale; 0.02-0.08 px offset: -7.5 to -30 mm at 2 m at 424 x 240 (of one sign:
