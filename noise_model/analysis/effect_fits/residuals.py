@@ -148,7 +148,9 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
     f = 1 and e = depth_scale^2 / 12 (the rounding's variance, Sheppard: exact for sigma >~ 0.6 units;
     the base simulation's own sampling noise stays out). Then y = (v_real - e) / f estimates sigma_new^2. The model of y
     is the bin's mean of sigma(c)^2 = (c0 + c1 z + c2 z^2 + c_theta z^1.5 theta / (pi/2 - theta)^2)^2
-    over its pixels; residuals (model - y) / sd(y), sd(y)^2 ~ 2 (v_real^2 + v_base^2) / (n (F - 1)),
+    over its pixels; residuals (model - y) / sd(y), sd(y)^2 ~ 2 (v_real^2 + v_base^2) / (n (F - 1)) (v_base
+    only where the base simulations give f and e: a base far noisier than the real data, the paper's
+    angle term at grazing angles, must not take the weight from those bins),
     non-negative coefficients (bounded least squares started from the non-negative linear fit of
     sqrt(y)). Bins whose real sigma exceeds 15 % of z are left out; where the reference's sigma does
     (its noise is truncated at z <= 0 there, so the base simulations cannot give f and e), f = 1 and
@@ -214,7 +216,9 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
             gth = zz * np.sqrt(zz) * angle_gain(tt, 1.0)   # the regressor of the angle coefficient
             bins.append(np.column_stack([np.ones_like(zz), zz, zz * zz, gth]))
             ys.append(y2)
-            sds.append(math.sqrt(2.0 * (v_r ** 2 + v_b ** 2) / (sel.sum() * max(dof, 1))) / f)
+            # the base's variance enters y only through f and e (base effects); otherwise only the real one
+            v_base = v_b if (vb2 is not None and not truncated) else 0.0
+            sds.append(math.sqrt(2.0 * (v_r ** 2 + v_base ** 2) / (sel.sum() * max(dof, 1))) / f)
             zmean.append(float(np.mean(zz)))
             share.append(float(np.mean(cref[3] * gth / sref[sel])))
     if not ys:
