@@ -550,8 +550,9 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     fit_dir : path or WorkDir, optional
         Work folder for the fitted model only (no frames cached), when ``work_dir`` is None.
     settings : str or dict, optional
-        Map settings applied to ``config`` for every mapper (``--set``, :func:`elevmap.commands.compare_args.parse_settings`): the
-        fusion rules switched off or changed, to measure what each buys.
+        Map settings applied to ``config`` for every mapper (``--set``,
+        :func:`elevmap.commands.compare_args.parse_settings`): the fusion rules switched off or changed, to
+        measure what each buys.
 
     Returns
     -------

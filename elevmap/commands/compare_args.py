@@ -173,8 +173,9 @@ def parse_reality(reality, sim_effects=None) -> dict:
 
 def parse_settings(spec) -> dict:
     """Map settings from ``--set KEY=VALUE[,KEY=VALUE]``: fields of :class:`elevmap.FusionParams`,
-    ``visibility_cleanup`` and the camera's ``bin_at_plane``. A value is read as the field's default is typed: ``none`` (a field that may be
-    None), ``true``/``false``, an integer or a number; ``neighbour_estimator`` takes a name.
+    ``visibility_cleanup`` and the camera's ``bin_at_plane``. A value is read as the field's default is
+    typed: ``none`` (a field that may be None), ``true``/``false``, an integer or a number;
+    ``neighbour_estimator`` takes a name.
 
     Returns
     -------

@@ -158,7 +158,8 @@ def format_seeds_table(report: dict) -> str:
                      cell(s, "edge_rmse_m", 1e3, 1),
                      cell(s, "edge_coverage_2sigma", 100, 1), cell(s, "edge_known_fraction", 100, 1), verdict))
     out = [head] + _table(cols, units, rows)
-    out.append(f"criteria on the medians: 2-sigma in [{COVERAGE_2SIGMA_BAND[0]}, {COVERAGE_2SIGMA_BAND[1]}], 1-sigma in "
+    lo2, hi2 = COVERAGE_2SIGMA_BAND
+    out.append(f"criteria on the medians: 2-sigma in [{lo2}, {hi2}], 1-sigma in "
                f"[{COVERAGE_1SIGMA_BAND[0]}, {COVERAGE_1SIGMA_BAND[1]}], the lowest NLL, RMSE within "
                f"{RMSE_TOLERANCE:.0%} of the best mapper's")
     return "\n".join(out)

@@ -95,7 +95,8 @@ class WorkDir:
             True when read from the folder.
         """
         n = "all" if params.get("frames") is None else int(params["frames"])
-        stem = f"{params['reality']}-{params['scene']}-seed{int(params['seed'])}-{params['width']}x{params['height']}-f{n}"
+        stem = (f"{params['reality']}-{params['scene']}-seed{int(params['seed'])}-"
+                f"{params['width']}x{params['height']}-f{n}")
         npz, meta = self.path / "frames" / f"{stem}.npz", self.path / "frames" / f"{stem}.json"
         key = {"format": CACHE_FORMAT, "version": _version(), **params}
         if npz.is_file() and meta.is_file():
