@@ -267,16 +267,7 @@ def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 
 
     from ..sources.simulated import SimulatedWalk
 
-    if scene not in SCENES:
-        raise ValueError(f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
-        raise ValueError(f"seed must be an integer, got {seed!r}")
-    if n_frames is not None and (isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer))
-                                 or n_frames < 1):
-        raise ValueError(f"frames must be a positive integer, got {n_frames!r}")
-    for v, name in ((width, "width"), (height, "height")):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 16 <= v <= 4096:
-            raise ValueError(f"{name} must be an integer in [16, 4096] px, got {v!r}")
+    _check_walk(scene, n_frames, seed, width, height)
     effects = list(effects or ())
     for e in effects:
         if not callable(e):
@@ -305,6 +296,20 @@ def render_walk(scene: str = "stairs", n_frames: int | None = None, seed: int = 
                   "preset": preset if reality == "stereo" else None}
         frames, walk.frames_cached = work.frames(params, render)
     return frames, walk
+
+
+def _check_walk(scene, n_frames, seed, width, height) -> None:
+    """The walk's arguments (before any work)."""
+    if scene not in SCENES:
+        raise ValueError(f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if n_frames is not None and (isinstance(n_frames, bool) or not isinstance(n_frames, (int, np.integer))
+                                 or n_frames < 1):
+        raise ValueError(f"frames must be a positive integer, got {n_frames!r}")
+    for v, name in ((width, "width"), (height, "height")):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 16 <= v <= 4096:
+            raise ValueError(f"{name} must be an integer in [16, 4096] px, got {v!r}")
 
 
 def _digest_update(h, frame: Frame) -> None:
@@ -571,8 +576,13 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     names = parse_mappers(mappers)
     real = parse_reality(reality, sim_effects)
     effects = real["effects"]
-    if scene not in SCENES:
-        raise ValueError(f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
+    _check_walk(scene, n_frames, seed, width, height)
+    _check_cap(cap)
+    nm.D435.intrinsics(int(width), int(height))                   # a depth mode with default intrinsics
+    if real["sensor"] == "stereo":
+        from noise_model.sim.stereo.matcher import preset as matcher_preset
+
+        matcher_preset(preset).check_size(width, height)        # before a capture set is simulated for it
     work = None if work_dir is None else (work_dir if isinstance(work_dir, WorkDir) else WorkDir(work_dir))
     key = reality_key(real["kind"], preset, real["effects_digest"])
     fitted_info = None

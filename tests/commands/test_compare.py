@@ -363,7 +363,7 @@ def test_bad_arguments_exit_2_with_a_message(tmp_path, capsys, args, message):
     assert main(["compare", "--json", str(tmp_path / "r.json"), "--frames", "1", "--no-progress"] + args) == 2
     err = capsys.readouterr().err
     assert message in err and err.startswith("elevmap compare: error:")
-    assert not (tmp_path / "r.json").exists()
+    assert list(tmp_path.iterdir()) == []           # refused before any work: no report, no fitted model
 
 
 def test_json_is_required_and_outputs_are_checked_first(tmp_path, capsys):
