@@ -40,6 +40,7 @@ from ..checks import check_positive_scalar
 from ..d435 import D435, SensorModel, expected_rms_error
 from ..formulas import angle_gain, dersimonian_laird_tau2, sigma_z_from_gain
 from ..sim.targets import target_rotation
+from .family_fit import check_axial_points
 from .planes import Plane
 
 __all__ = [
@@ -655,19 +656,9 @@ def fit_axial_model(z_m, theta_rad, sigma_m, p0=None, iterations: int = 3, robus
     -------
     AxialFit
     """
-    z = np.asarray(z_m, dtype=np.float64).ravel()
-    t = np.asarray(theta_rad, dtype=np.float64).ravel()
-    s = np.asarray(sigma_m, dtype=np.float64).ravel()
-    if not (z.shape == t.shape == s.shape):
-        raise ValueError(f"z_m, theta_rad and sigma_m must have the same length, got {z.shape}, {t.shape}, {s.shape}")
+    z, t, s = check_axial_points(z_m, theta_rad, sigma_m)
     if z.size < 5:
         raise ValueError(f"fitting 4 coefficients needs at least 5 captures with axial noise, got {z.size}")
-    if not (np.all(np.isfinite(z)) and np.all(z > 0) and np.all(z <= 100.0)):
-        raise ValueError("z_m must be finite depths in metres, > 0")
-    if not (np.all(np.isfinite(t)) and np.all(t >= 0) and np.all(t < 0.5 * np.pi)):
-        raise ValueError("theta_rad must be finite angles in [0, pi/2) radians")
-    if not (np.all(np.isfinite(s)) and np.all(s > 0) and np.all(s < 100.0)):
-        raise ValueError("sigma_m must be finite standard deviations in metres, > 0")
     p = np.asarray(D435.axial_coefficients if p0 is None else p0, dtype=np.float64)
     if p.shape != (4,):
         raise ValueError(f"p0 must hold 4 coefficients, got {p.shape}")

@@ -30,8 +30,8 @@ from scipy import optimize
 from ..checks import check_positive_scalar
 from ..formulas import disparity_angle_gain, disparity_sigma_z_from_gain
 
-__all__ = ["DisparityFit", "fit_disparity_model", "distance_angle_blocks", "heldout_errors", "FAMILIES_FITTED",
-           "MIN_THETA_SPREAD_RAD", "DISTANCE_BLOCK_M", "ANGLE_BLOCK_DEG", "MIN_PAPER_POINTS"]
+__all__ = ["DisparityFit", "fit_disparity_model", "check_axial_points", "distance_angle_blocks", "heldout_errors",
+           "FAMILIES_FITTED", "MIN_THETA_SPREAD_RAD", "DISTANCE_BLOCK_M", "ANGLE_BLOCK_DEG", "MIN_PAPER_POINTS"]
 
 #: The families a characterisation fits, in the order reports list them.
 FAMILIES_FITTED = ("paper", "disparity")
@@ -46,7 +46,12 @@ MIN_PAPER_POINTS = 5
 _SIGMA_FLOOR_M = 1e-6
 
 
-def _points(z_m, theta_rad, sigma_m):
+def check_axial_points(z_m, theta_rad, sigma_m):
+    """Depths [m], incidence angles [rad] and axial sigmas [m] of a fit as three flat float arrays.
+
+    Raises ``ValueError`` naming the input that is not a finite depth (0, 100] m, an angle in
+    [0, pi/2) or a standard deviation (0, 100) m, or when their lengths differ.
+    """
     z = np.asarray(z_m, dtype=np.float64).ravel()
     t = np.asarray(theta_rad, dtype=np.float64).ravel()
     s = np.asarray(sigma_m, dtype=np.float64).ravel()
@@ -144,7 +149,7 @@ def fit_disparity_model(z_m, theta_rad, sigma_m, fx_px, baseline_m: float, itera
     -------
     DisparityFit
     """
-    z, t, s = _points(z_m, theta_rad, sigma_m)
+    z, t, s = check_axial_points(z_m, theta_rad, sigma_m)
     if z.size < 1:
         raise ValueError("fitting sigma_d needs at least one measurement of axial noise")
     f = _focal(fx_px, z.size)
@@ -261,7 +266,7 @@ def heldout_errors(z_m, theta_rad, sigma_m, fx_px, baseline_m: float, labels=Non
         ``median_ratio`` (measured / predicted), ``n_predicted``, ``rms_log_error_common``), ``n_common``,
         ``better``, ``reason``.
     """
-    z, t, s = _points(z_m, theta_rad, sigma_m)
+    z, t, s = check_axial_points(z_m, theta_rad, sigma_m)
     f = _focal(fx_px, z.size)
     if labels is None:
         labels, names = distance_angle_blocks(z, t)
