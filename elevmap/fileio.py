@@ -10,9 +10,11 @@
 * Every temporary is named ``.<name>.elevmap-tmp-<pid>-<random><suffix>`` (:data:`TEMP_TAG`): a run that
   was killed outright (SIGKILL, power loss) can leave one, and the next run writing the same output
   recognises it by that name and removes it once its process no longer exists.
-* :func:`handle_signals` turns SIGTERM and SIGHUP into :class:`Interrupted` (a ``KeyboardInterrupt``, as
-  SIGINT already is), so that the clean-up of every temporary runs on ``timeout``, ``docker stop`` or a
-  closed terminal as it does on Ctrl-C; :func:`remove_temporaries` removes any still registered.
+* :func:`handle_signals` turns SIGINT, SIGTERM and SIGHUP into :class:`Interrupted` (a
+  ``KeyboardInterrupt``), so that the clean-up of every temporary runs on ``timeout``, ``docker stop`` or a
+  closed terminal as it does on Ctrl-C; :func:`remove_temporaries` removes any still registered. A signal
+  whose exception was swallowed (it landed in a C callback) is raised again before any output is renamed
+  into place (:func:`check_interrupted`).
 * Finished outputs get the permissions of the file they replace, or 0o666 (folders 0o777) minus the
   umask (:func:`new_file_mode`).
 """
@@ -28,6 +30,7 @@ import re
 import secrets
 import shutil
 import signal
+import sys
 import threading
 from collections.abc import Iterable, Mapping
 from pathlib import Path
@@ -36,6 +39,7 @@ from noise_model.reporting import json_ready
 
 __all__ = ["check_outputs", "atomic_output", "atomic_folder", "write_json_atomic", "json_ready", "new_file_mode",
            "new_temp_file", "release_temp", "remove_leftovers", "remove_temporaries", "handle_signals", "Interrupted",
+           "check_interrupted",
            "TEMP_TAG", "input_files", "check_folder_output"]
 
 #: Marks the name of every temporary file or folder an output is written to.
@@ -48,7 +52,7 @@ _live_lock = threading.Lock()
 
 
 class Interrupted(KeyboardInterrupt):
-    """SIGTERM or SIGHUP received (SIGINT raises ``KeyboardInterrupt`` itself); ``signum`` says which."""
+    """SIGINT, SIGTERM or SIGHUP received under :func:`handle_signals`; ``signum`` says which."""
 
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
@@ -335,6 +339,7 @@ def atomic_output(path, suffix: str | None = None):
     tmp = new_temp_file(path, suffix or path.suffix or ".tmp")
     try:
         yield tmp
+        check_interrupted()
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.chmod(tmp, new_file_mode(path))
@@ -387,6 +392,7 @@ def atomic_folder(path):
     _register(tmp)
     try:
         yield tmp
+        check_interrupted()
         os.chmod(tmp, new_file_mode(path, folder=True))
         with _signals_blocked():                    # no interruption between the renames of a swap
             if not path.exists():
@@ -457,33 +463,59 @@ def write_json_atomic(path, obj) -> None:
 # ------------------------------------------------------------------------------------------------
 # signals
 
+#: The signal :func:`handle_signals` last turned into :class:`Interrupted`, None when there was none. An
+#: exception raised by a signal handler is lost when the signal lands while C code runs a Python callback
+#: (numba's compiler caching a kernel calls back through ctypes: Python prints "Exception ignored" and goes
+#: on), so the outputs check it before they commit (:func:`check_interrupted`).
+_pending_signal = None
+
+
+def check_interrupted() -> None:
+    """Raise :class:`Interrupted` for a signal whose exception was lost (see :data:`_pending_signal`);
+    called before an output is renamed into place and at the end of :func:`handle_signals`."""
+    if _pending_signal is not None:
+        raise Interrupted(_pending_signal)
+
+
 
 @contextlib.contextmanager
 def handle_signals():
-    """Within the block SIGTERM and SIGHUP raise :class:`Interrupted` in the main thread, as SIGINT raises
-    ``KeyboardInterrupt``, so that every ``finally`` and ``except`` that removes a temporary runs; on the
+    """Within the block SIGINT, SIGTERM and SIGHUP raise :class:`Interrupted` in the main thread, so that every ``finally`` and ``except`` that removes a temporary runs; on the
     way out the temporaries still registered are removed and the previous handlers restored.
 
     Outside the main thread it does nothing (Python delivers signals to the main thread only).
     """
+    global _pending_signal
     if threading.current_thread() is not threading.main_thread():
         yield
         return
 
     def raise_interrupted(signum, frame):
+        global _pending_signal
+        _pending_signal = signum                    # kept: the exception may be swallowed (below)
         raise Interrupted(signum)
 
-    previous = {signal.SIGINT: signal.getsignal(signal.SIGINT)}
-    for sig in (signal.SIGTERM, signal.SIGHUP):
+    def quiet_unraisable(unraisable):
+        if isinstance(unraisable.exc_value, Interrupted):
+            return                                  # swallowed by C code: recorded, raised again later
+        previous_hook(unraisable)
+
+    _pending_signal = None
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         previous[sig] = signal.signal(sig, raise_interrupted)
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = quiet_unraisable
     try:
         yield
+        check_interrupted()
     except KeyboardInterrupt:
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):   # a second signal may not stop the clean-up
             signal.signal(sig, signal.SIG_IGN)
         remove_temporaries()
         raise
     finally:
+        sys.unraisablehook = previous_hook
         for sig, handler in previous.items():
             if handler is not None:
                 signal.signal(sig, handler)

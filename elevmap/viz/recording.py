@@ -14,7 +14,7 @@ import warnings
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..fileio import new_file_mode, new_temp_file, release_temp
+from ..fileio import check_interrupted, new_file_mode, new_temp_file, release_temp
 
 __all__ = ["AtomicRecording", "open_recording"]
 
@@ -109,6 +109,7 @@ class AtomicRecording:
                               RuntimeWarning, stacklevel=2)
             self.recording.disconnect()          # closes the file sink and writes the footer
             if self.tmp_path is not None:
+                check_interrupted()
                 with open(self.tmp_path, "rb") as fh:
                     os.fsync(fh.fileno())
                 os.chmod(self.tmp_path, new_file_mode(self.path))
