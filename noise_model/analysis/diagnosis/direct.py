@@ -197,22 +197,13 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
                 add("static_sigma_d_px", name, params["sigma_px"], p["static_sigma_d_px"])
     if model_direct is not None:
         sim = {r["id"]: r for r in model_direct["captures"]}
-        ratios = [sim[r["id"]]["temporal_sigma_d_px"] / r["temporal_sigma_d_px"] for r in direct["captures"]
-                  if r["id"] in sim and r["temporal_sigma_d_px"] > 0]
-        ratios = np.array([x for x in ratios if math.isfinite(x)])
-        if ratios.size:
-            q = float(np.median(ratios))
-            rows.append({"quantity": "temporal_sigma_d_px (final model / real, median over captures)",
-                         "effect": "+".join(e["name"] for e in effects) or "reference", "fitted": q,
-                         "direct": 1.0, "ratio": q, "agrees": bool(abs(q - 1.0) <= tolerance),
-                         "ratio_p10_p90": [float(np.percentile(ratios, 10)), float(np.percentile(ratios, 90))]})
-        s_sim = [sim[r["id"]]["static_sigma_d_px"] / r["static_sigma_d_px"] for r in direct["captures"]
-                 if r["id"] in sim and r["static_sigma_d_px"] > 0]
-        s_sim = np.array([x for x in s_sim if math.isfinite(x)])
-        if s_sim.size:
-            q = float(np.median(s_sim))
-            rows.append({"quantity": "static_sigma_d_px (final model / real, median over captures)",
-                         "effect": "+".join(e["name"] for e in effects) or "reference", "fitted": q,
-                         "direct": 1.0, "ratio": q, "agrees": bool(abs(q - 1.0) <= tolerance),
-                         "ratio_p10_p90": [float(np.percentile(s_sim, 10)), float(np.percentile(s_sim, 90))]})
+        for key in ("temporal_sigma_d_px", "static_sigma_d_px"):
+            ratios = [sim[r["id"]][key] / r[key] for r in direct["captures"] if r["id"] in sim and r[key] > 0]
+            ratios = np.array([x for x in ratios if math.isfinite(x)])
+            if ratios.size:
+                q = float(np.median(ratios))
+                rows.append({"quantity": f"{key} (final model / real, median over captures)",
+                             "effect": "+".join(e["name"] for e in effects) or "reference", "fitted": q,
+                             "direct": 1.0, "ratio": q, "agrees": bool(abs(q - 1.0) <= tolerance),
+                             "ratio_p10_p90": [float(np.percentile(ratios, 10)), float(np.percentile(ratios, 90))]})
     return rows
