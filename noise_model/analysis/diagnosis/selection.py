@@ -5,8 +5,9 @@
 effect is fitted on the fit captures and simulated (common random numbers: each capture's noise seed
 is the same in every model), the one that lowers the fit gap most is added if it shrinks the held-out
 gap significantly (paired bootstrap over frames, :func:`.floor.shrink_test`: at least 1 - alpha of the
-replicates shrink, and by at least ``min_shrink`` of the baseline held-out gap); repeat while the
-remaining gap is significant. Ablation then removes each selected effect again and reports whether the
+replicates shrink) and materially (by at least ``min_shrink`` of the held-out gap left before its round,
+and by more than the 95th percentile of real-vs-real aggregate gaps); repeat while the remaining gap is
+significant. Ablation then removes each selected effect again and reports whether the
 held-out gap grows significantly (confirmed) or not.
 
 An effect is a (name, params) pair; a model is the reference simulation plus a list of effects.
@@ -35,10 +36,16 @@ class SelectionConfig:
         Significance level: the baseline test, and the paired bootstrap of a shrink (at least
         1 - alpha of the replicates must shrink).
     min_shrink : float
-        An effect must also shrink the held-out gap by at least this fraction of the baseline
-        held-out gap.
+        Materiality: an effect must also shrink the held-out gap by at least this fraction of the
+        held-out gap left before its round (what the effects selected so far leave unexplained), and
+        by more than the 95th percentile of the real-vs-real aggregate gaps of the held-out captures
+        (a shrink two halves of the real data could show against each other is no shrink). Relative
+        to what is left, not to the baseline: once a first effect has removed most of a gap that the
+        reference model gets 100 times wrong, the next effect's share of the baseline is small
+        however real it is, while its share of what is left is what a user gains by adding it.
     max_effects : int
-        At most this many effects are selected.
+        At most this many effects are selected (the library holds 12; the selection normally stops
+        earlier, when no candidate passes the held-out test or the gap left is within the floor).
     prune : bool
         From the second round on, only candidates that shrank the fit gap in the previous round are
         tried again (saves time; an effect that did not help before rarely helps after another).
@@ -46,7 +53,7 @@ class SelectionConfig:
 
     alpha: float = 0.05
     min_shrink: float = 0.05
-    max_effects: int = 4
+    max_effects: int = 8
     prune: bool = True
 
 
@@ -239,6 +246,14 @@ class Diagnosis:
             if k not in keys:
                 del self._sums[k]
 
+    def min_delta(self, current: GapResult) -> float:
+        """The smallest material shrink of the held-out gap from ``current`` (the model before the round):
+        ``min_shrink`` of its gap, and no less than the 95th percentile of the real-vs-real aggregate
+        gaps of its captures (:attr:`SelectionConfig.min_shrink`)."""
+        null = current.floor.null_g
+        noise = float(np.percentile(null, 95)) if null.size else 0.0
+        return max(self.config.min_shrink * current.G, noise)
+
     # -- the whole diagnosis ------------------------------------------------------------------
     def run(self, candidates: Sequence[str] = ()) -> DiagnosisResult:
         """Baseline, forward selection over ``candidates`` (effect names) and ablation."""
@@ -288,13 +303,16 @@ class Diagnosis:
             entry, model, r_fit = ok[0]
             r_val = self.evaluate(model, self.validation_ids)
             test = shrink_test(cur_val, r_val, cfg.alpha)
-            big_enough = test["delta"] >= cfg.min_shrink * b_val.G
+            min_delta = self.min_delta(cur_val)
+            big_enough = test["delta"] >= min_delta
             rnd["chosen"] = entry["name"]
-            rnd["heldout_test"] = {**test, "gap_heldout_after": r_val.G, "min_delta": cfg.min_shrink * b_val.G}
+            rnd["heldout_test"] = {**test, "gap_heldout_after": r_val.G, "min_delta": min_delta}
             if not (test["significant"] and big_enough):
                 rnd["accepted"] = False
-                stop_reason = (f"best candidate {entry['name']} does not shrink the held-out gap significantly "
-                               f"(shrinks in {100 * test['fraction']:.0f} % of replicates, by {test['delta']:.3g})")
+                why = "significantly" if not test["significant"] else "materially"
+                stop_reason = (f"best candidate {entry['name']} does not shrink the held-out gap {why} "
+                               f"(shrinks in {100 * test['fraction']:.0f} % of replicates, by {test['delta']:.3g}; "
+                               f"material from {min_delta:.3g})")
                 break
             rnd["accepted"] = True
             selected = model
