@@ -266,6 +266,9 @@ def simulate_capture(geometry: CaptureGeometry, n_frames: int, rng: np.random.Ge
     """
     effects = tuple(effects or ())
     context = None
+    if isinstance(geometry, CaptureGeometry) and isinstance(model, SensorModel) and model.family == "disparity" \
+            and model.frame_fx_px is None:
+        model = model.with_focal(float(geometry.K[0, 0]))      # its sigma_z in metres needs the frame's f
     if effects and isinstance(geometry, CaptureGeometry) and isinstance(model, SensorModel):
         regions = geometry.regions(model=model)
         regions.flags.writeable = False

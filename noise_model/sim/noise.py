@@ -19,7 +19,9 @@ Effect hook contract: ``effect(z, theta, rng, context) -> z``.
 * ``theta``: (H, W) float64 true incidence angles [rad], NaN where nothing is hit; read only.
 * ``rng``: the simulation's ``numpy.random.Generator``; draw from it only (reproducibility).
 * ``context``: dict with at least ``K`` (3, 3) [px], ``width``, ``height`` [px], ``index`` (frame
-  number, 0 outside a walk), ``depth_scale`` [m/unit] and ``z_true`` (H, W) [m] (read only);
+  number, 0 outside a walk), ``depth_scale`` [m/unit] and ``z_true`` (H, W) [m] (read only); with a
+  ``model``, ``sigma_z`` (H, W) [m] (read only), the reference noise's standard deviation per pixel (0
+  where nothing is hit), which an effect that refits the noise replaces for the effects after it;
   :func:`~noise_model.sim.walks.simulate_walk` adds ``stamp`` [s] and ``T_map_cam`` (true pose);
   :func:`~noise_model.sim.targets.simulate_target` adds ``baseline_m`` [m] and ``z_ref``.
 * Must return an array of shape (H, W) (any float dtype); values <= 0 or NaN mean no data.
@@ -52,7 +54,8 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
     rng : numpy.random.Generator
         Source of all randomness (required).
     model : SensorModel or None
-        Axial noise sigma_z(z_true, theta) of this model; None = no noise (only quantisation).
+        Axial noise sigma_z(z_true, theta) of this model; None = no noise (only quantisation). A
+        disparity-family model not bound to a focal length is bound to ``context['K'][0, 0]``.
     effects : sequence of callables, optional
         ``effect(z, theta, rng, context) -> z`` applied in order to the noisy metric depth before
         quantisation (contract in the module docstring).
@@ -99,9 +102,13 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
             raise ValueError("theta must be finite wherever z_true is a hit")
         if float(np.abs(tt).max()) > np.pi:
             raise ValueError(f"theta holds values up to {float(np.abs(tt).max()):.1f}: theta must be in radians")
+    sigma = None
     if model is None:
         z = z_t.copy()
     else:
+        K = (context or {}).get("K") if isinstance(context, dict) else None
+        if model.family == "disparity" and model.frame_fx_px is None and K is not None:
+            model = model.with_focal(float(np.asarray(K, dtype=np.float64)[0, 0]))   # sigma_z needs f
         sigma = np.zeros_like(z_t)
         sigma[hit] = axial_sigma_unchecked(zh, th[hit], model)
         z = z_t + rng.normal(0.0, 1.0, z_t.shape) * sigma
@@ -115,6 +122,9 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
         ctx = {"K": None, "index": 0}
         ctx.update(context or {})
         ctx.update(width=z_t.shape[1], height=z_t.shape[0], depth_scale=scale, z_true=z_ro)
+        if sigma is not None:
+            sigma.flags.writeable = False
+            ctx["sigma_z"] = sigma
         for k, e in enumerate(effects):
             out = np.asarray(e(z, th_ro, rng, ctx))
             if out.shape != z_t.shape or not np.issubdtype(out.dtype, np.floating):

@@ -304,6 +304,41 @@ def test_axial_refit_rescales_the_reference_noise():
     assert np.array_equal(a, simulate_capture(g, 3, np.random.default_rng(6)))
 
 
+def test_fractions_of_sigma_z_follow_the_refitted_noise_after_axial_refit():
+    # at 55 deg the paper's angle term makes its sigma ~4x the refit's (no angle term): a correlated field of
+    # 1.0 sigma_z after the refit must add the refit's variance, not the paper's
+    g = _wall(1.5, 55.0)
+    refit = E.axial_refit(0.0005, 0.0003, 0.002, 0.0)
+    corr = E.correlated_noise(sigma_z_fraction=1.0, length_px=2.0)
+    frames = simulate_capture(g, 40, np.random.default_rng(7), effects=[refit, corr]).astype(float) * 0.001
+    z, th = g.render()
+    centre = (slice(100, 140), slice(190, 230))
+    var = frames[:, centre[0], centre[1]].var(axis=0, ddof=1).mean()
+    s_new = np.mean(nm.axial_sigma(z[centre], th[centre], nm.SensorModel(axial_coefficients=refit.params.values())))
+    s_ref = np.mean(nm.axial_sigma(z[centre], th[centre]))
+    assert s_ref > 3 * s_new
+    assert var == pytest.approx(2 * s_new ** 2 + 1e-6 / 12, rel=0.1)
+    # and the fit reads the fraction in units of the base's refitted sigma
+    real = [CaptureData.from_units(w, simulate_capture(w, FRAMES, np.random.default_rng([11, i]),
+                                                       effects=[refit, E.correlated_noise(sigma_z_fraction=0.8,
+                                                                                          length_px=3.0)]))
+            for i, w in enumerate(WALLS)]
+    fit = E.fit_effect("correlated_noise", real, base_effects=[refit])
+    assert E.within_tolerance("correlated_noise", {"sigma_z_fraction": 0.8, "length_px": 3.0}, fit)[0], fit
+
+
+def test_a_disparity_model_simulates_at_the_captures_focal_length():
+    g = _wall(1.5, 30.0)
+    model = nm.D435.with_disparity(0.08)
+    frames = simulate_capture(g, 30, np.random.default_rng(8), model,
+                              effects=[E.correlated_noise(sigma_z_fraction=1.0, length_px=2.0)]).astype(float) * 1e-3
+    z, _ = g.render()
+    centre = (slice(100, 140), slice(190, 230))
+    sd = frames[:, centre[0], centre[1]].std(axis=0, ddof=1).mean()
+    s = float(np.mean(0.08 * z[centre] ** 2 / FB))                  # sigma_z = sigma_d z^2 / (f B)
+    assert sd == pytest.approx(math.sqrt(2 * s ** 2 + 1e-6 / 12), rel=0.08)
+
+
 # ---------------------------------------------------------------------------------------------
 # hook contract: walks, composition, seeding
 # ---------------------------------------------------------------------------------------------

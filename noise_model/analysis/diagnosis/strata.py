@@ -140,6 +140,8 @@ def make_gap_capture(capture_id: str, z_true_m, theta_rad, regions, K, baseline_
         geom &= r
     zt = np.where(geom, zf, np.nan)
     sig = np.full(z.shape, np.nan)
+    if model.family == "disparity" and model.frame_fx_px is None:
+        model = model.with_focal(float(Kc[0, 0]))            # its sigma_z in metres needs the frame's f
     sig[geom] = axial_sigma_unchecked(zt[geom], th.astype(np.float64)[geom], model)
     reg8 = np.where(geom, reg, REGION_NONE).astype(np.int8)
     return GapCapture(str(capture_id), zt, sig, reg8, float(Kc[0, 0]) * b, float(distance_m), float(angle_deg),

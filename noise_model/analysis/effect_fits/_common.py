@@ -18,6 +18,7 @@ import numpy as np
 
 from ...d435 import axial_sigma_unchecked
 from ...sim.effects import canonical_order
+from ...sim.effects.base import frame_model
 from ..capture_data import REGION_INTERIOR, CaptureData, simulate_capture
 
 
@@ -186,10 +187,27 @@ def _robust_mean_square(r, scale=None):
     return float(np.mean(r[keep] ** 2)) if keep.any() else float("nan"), keep
 
 
+def _frame(model, g):
+    """``model`` bound to the capture's focal length when it is of the disparity family
+    (:func:`noise_model.sim.effects.base.frame_model`)."""
+    return frame_model(model, float(g.K[0, 0]))
+
+
+def _base_sigma_model(model, base_effects, g):
+    """The model whose sigma_z the base simulation's white axial noise has, bound to the capture's focal
+    length: the refitted one of an ``axial_refit`` among ``base_effects`` (it replaces the reference's
+    noise, and the effects after it scale with its sigma), else ``model``."""
+    out = model
+    for e in base_effects or ():
+        if getattr(e, "name", None) == "axial_refit" and getattr(e, "new_model", None) is not None:
+            out = e.new_model
+    return _frame(out, g)
+
+
 def _sigma_ref_px(g, model, mask):
     """The model's sigma_z [m] at the mask's pixels (z_true, theta of the nominal render)."""
     z, th, _, _ = _nominal(g, model)
-    return axial_sigma_unchecked(z[mask], th[mask], model)
+    return axial_sigma_unchecked(z[mask], th[mask], _frame(model, g))
 
 
 #: Pixels per capture used by the per-pixel statistics (a fixed stride through the interior).
@@ -219,7 +237,8 @@ def _pixels(c, mask):
 
 
 def _disp_sigma(z, th, model, depth_scale, fb):
-    """Disparity noise [px] of the reference at depth z with the unit rounding: sqrt(s_d^2 + q^2 / 12)."""
+    """Disparity noise [px] of the reference at depth z with the unit rounding: sqrt(s_d^2 + q^2 / 12);
+    a disparity-family ``model`` must be bound to the frame (:func:`_frame`)."""
     s = axial_sigma_unchecked(np.asarray(z, dtype=float), np.asarray(th, dtype=float), model)
     q = fb * depth_scale / np.asarray(z, dtype=float) ** 2
     return np.sqrt((s * fb / np.asarray(z, dtype=float) ** 2) ** 2 + q * q / 12.0)

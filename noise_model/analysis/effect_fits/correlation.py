@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from ...d435 import axial_sigma_unchecked
-from ._common import _interior, _nominal, _plane_residual, _roi
+from ._common import _base_sigma_model, _interior, _nominal, _plane_residual, _roi
 from .spec import FitSpec
 
 
@@ -106,11 +106,13 @@ def _spatial_standardised_residual(c, m, sig, fb):
     return (np.where(keep, x, 0.0).astype(np.float32)[None], keep.astype(np.float32)[None])
 
 
-def _fit_correlated_noise(real, base, model, rois=None, **_):
+def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
     """Excess lag covariance of the per-frame residuals, in units of sigma_z.
 
     Per capture (interior pixels valid in every frame; captures up to 60 deg, below the truncation of
-    the reference noise at grazing angles), x = (z - temporal mean) / sigma_z(z_true, theta), values
+    the reference noise at grazing angles), x = (z - temporal mean) / sigma_z(z_true, theta), sigma_z
+    that of the base's axial noise (the refitted one when ``base_effects`` hold an ``axial_refit``, which
+    the effect then scales with: :func:`_base_sigma_model`), values
     more than 8 sigma from the pixel's temporal median (outliers) left out of the mean and the sums: the
     temporal mean removes everything static. The effect adds f g with g a unit field of correlation
     rho(h), so x's lag covariance (over the first 6 frames) grows by f^2 (1 - 1/F) rho(h). The
@@ -136,7 +138,8 @@ def _fit_correlated_noise(real, base, model, rois=None, **_):
              & np.all(np.isfinite(b.depth_m), axis=0))
         if m.sum() < 100:
             continue
-        sig = np.where(m, axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0), model), 1.0)
+        sig = np.where(m, axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0),
+                                                _base_sigma_model(model, base_effects, g)), 1.0)
         if c.n_frames >= 2:
             nf = min(c.n_frames, _CORR_FRAMES)
             xr, wr = _standardised_residuals(c, m, sig, nf)
@@ -310,11 +313,12 @@ def _static_lag_cov(c, m, fb, dtrue, scale, lags):
     return cm - cd / (F - 1), n
 
 
-def _fit_static_noise(real, base, model, rois=None, **_):
+def _fit_static_noise(real, base, model, rois=None, base_effects=(), **_):
     """Excess static lag covariance of the disparity residual in units of the model's sigma_d.
 
-    Per capture (interior pixels): sigma_d = sigma_z(z_true, theta) f B / z_true^2, the model's noise in
-    disparity; the static part's lag covariance of the residual over sigma_d, told apart from the
+    Per capture (interior pixels): sigma_d = sigma_z(z_true, theta) f B / z_true^2, the base's axial noise
+    in disparity (the refitted one when ``base_effects`` hold an ``axial_refit``, :func:`_base_sigma_model`,
+    which the field then scales with); the static part's lag covariance of the residual over sigma_d, told apart from the
     temporal noise left in the temporal mean (:func:`_static_lag_cov`), so that neither a different
     temporal level nor a temporal correlation reads as static with few frames. The field adds
     sigma_z_fraction^2 rho(h) to it; the base simulation's is subtracted (it holds what the effects
@@ -333,7 +337,8 @@ def _fit_static_noise(real, base, model, rois=None, **_):
         m = _interior(g, model, _roi(rois, g))
         with np.errstate(divide="ignore", invalid="ignore"):
             dtrue = fb / z
-            sd = np.where(m, axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0), model)
+            sd = np.where(m, axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0),
+                                                   _base_sigma_model(model, base_effects, g))
                           * fb / np.where(m, z, 1.0) ** 2, 1.0)
         if c.n_frames >= 2:
             sr = _static_lag_cov(c, m, fb, dtrue, sd, _STATIC_NOISE_LAGS)

@@ -16,7 +16,7 @@ from scipy.special import ndtr
 from ...sim.effects.base import true_disparity
 from ...sim.effects.edges import fattening_levels
 from ..capture_data import REGION_BACKGROUND, REGION_EDGE_LEFT, REGION_EDGE_RIGHT, REGION_INTERIOR
-from ._common import _disp_sigma, _interior, _nominal, _roi
+from ._common import _disp_sigma, _frame, _interior, _nominal, _roi
 from .spec import FitSpec
 
 
@@ -135,8 +135,8 @@ def _fit_flying_pixels(real, base, model, rois=None, **_):
                 continue
             zf = fb / side["dfg_edge"]
             thf = float(np.nanmedian(th[side["S"] & side["board"]]))
-            sig_fg = max(float(_disp_sigma(zf, thf, model, g.depth_scale, fb)), s_fg)
-            sig_bg = max(float(_disp_sigma(g.background_m, 0.0, model, g.depth_scale, fb)), s_bg)
+            sig_fg = max(float(_disp_sigma(zf, thf, _frame(model, g), g.depth_scale, fb)), s_fg)
+            sig_bg = max(float(_disp_sigma(g.background_m, 0.0, _frame(model, g), g.depth_scale, fb)), s_bg)
             lo_fg, lo_bg = 5.0 * sig_fg - m_fg, 5.0 * sig_bg + m_bg
             nr, hr = _flying_stats(c, side, lo_fg, lo_bg)
             nb, hb = _flying_stats(b, side, lo_fg, lo_bg)

@@ -17,7 +17,7 @@ from scipy.special import ndtr
 from ...d435 import axial_sigma_unchecked
 from ...formulas import angle_gain
 from ._common import (
-    _MAX_SAMPLE_PX, _base_sims, _disp_sigma, _nominal, _pixels, _plane_residual, _robust_mean_square,
+    _MAX_SAMPLE_PX, _base_sims, _disp_sigma, _frame, _nominal, _pixels, _plane_residual, _robust_mean_square,
     _robust_temporal_var, _roi, _sample_mask, _temporal_min_count,
 )
 from .spec import FitSpec
@@ -51,7 +51,7 @@ def _fit_outliers(real, base, model, rois=None, **_):
             continue
         zt = z[m]
         dt = fb / zt
-        sd = _disp_sigma(zt, th[m], model, g.depth_scale, fb)
+        sd = _disp_sigma(zt, th[m], _frame(model, g), g.depth_scale, fb)
         rr = fb / _pixels(c, m) - dt
         rb = fb / _pixels(b, m) - dt
         okb = np.isfinite(rb)
@@ -185,7 +185,7 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
         if m.sum() < 50:
             continue
         zs, ts = z[m], np.minimum(np.abs(th[m]), ct)
-        sref = axial_sigma_unchecked(zs, ts, model)
+        sref = axial_sigma_unchecked(zs, ts, _frame(model, g))
         vr, dof = _pixel_variances(c, m, sref, fb, zs)
         vb, _ = _pixel_variances(b, m, sref, fb, zs)
         vb2 = _pixel_variances(base2[k], m, _AXIAL_SCALE2 * sref, fb, zs)[0] if base2 is not None else None

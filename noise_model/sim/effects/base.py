@@ -22,6 +22,16 @@ Disparity
 f B (focal length [px] times baseline [m]) is ``K[0, 0] * context['baseline_m']`` (the D435's 0.050 m
 when absent); the disparity of a depth z is d = f B / z [px]. Pixel parameters are in pixels of the
 simulated stream.
+
+The axial noise in effect
+-------------------------
+``context['sigma_z']`` (H, W) [m], when present, is the standard deviation of the white axial noise the
+frame holds so far: :func:`noise_model.sim.add_noise` sets it to the reference model's sigma_z(z_true,
+theta) (0 where nothing is hit) and :func:`~.residuals.axial_refit` replaces it with its refitted sigma.
+The effects whose size is a fraction of sigma_z (``correlated_noise``, ``static_noise``) scale with it,
+so that after a refit they are fractions of the refitted noise, not of the paper's (whose angle term can
+be 100 times a real camera's at grazing angles). Without it they use their own ``model``'s sigma_z
+(:func:`model_sigma`), bound to the frame's focal length when the model is of the disparity family.
 """
 
 from __future__ import annotations
@@ -31,9 +41,9 @@ import math
 import numpy as np
 
 from ...checks import check_intrinsics, check_positive_scalar, check_scalar_range
-from ...d435 import D435, SensorModel
+from ...d435 import D435, SensorModel, axial_sigma_unchecked
 
-__all__ = ["Effect", "gaussian_random_field", "check_sensor_model", "true_disparity"]
+__all__ = ["Effect", "gaussian_random_field", "check_sensor_model", "true_disparity", "frame_model", "model_sigma"]
 
 
 class Effect:
@@ -94,6 +104,46 @@ def check_sensor_model(model) -> SensorModel:
     if not isinstance(model, SensorModel):
         raise ValueError(f"model must be a noise_model.SensorModel, got {type(model).__name__}")
     return model
+
+
+def frame_model(model: SensorModel, fx_px) -> SensorModel:
+    """``model`` bound to a frame of focal length ``fx_px`` [px] when it is of the disparity family and not
+    bound yet (its sigma_z in metres needs the focal length, :meth:`noise_model.SensorModel.with_focal`);
+    ``model`` itself otherwise. ``fx_px`` None leaves an unbound disparity model unbound (its sigma_z then
+    raises a ValueError that says what is missing)."""
+    if model.family == "disparity" and model.frame_fx_px is None and fx_px is not None:
+        return model.with_focal(float(fx_px))
+    return model
+
+
+def model_sigma(model: SensorModel, zt, theta, hit, context: dict, who: str):
+    """sigma_z [m] of the axial noise in effect at the pixels ``hit``: ``context['sigma_z'][hit]`` when
+    the context holds it (the reference's or a refit's, module docstring), else ``model``'s sigma_z at
+    (zt, theta) bound to the frame's focal length ``context['K'][0, 0]`` (:func:`frame_model`).
+
+    Parameters
+    ----------
+    model : SensorModel
+    zt, theta : ndarray, shape (H, W)
+        True depth [m] and incidence angle [rad]; finite, zt > 0 at ``hit``.
+    hit : ndarray of bool, shape (H, W)
+    context : dict
+    who : str
+        The effect's name, for error messages.
+
+    Returns
+    -------
+    ndarray, shape (hit.sum(),)
+    """
+    sig = context.get("sigma_z")
+    if sig is not None:
+        s = np.asarray(sig, dtype=np.float64)
+        if s.shape != hit.shape:
+            raise ValueError(f"{who}: context['sigma_z'] must have shape {hit.shape}, got {s.shape}")
+        return s[hit]
+    K = context.get("K")
+    fx = None if K is None else float(np.asarray(K, dtype=np.float64)[0, 0])
+    return axial_sigma_unchecked(zt[hit], theta[hit], frame_model(model, fx))
 
 
 def _fb(context: dict, who: str) -> float:

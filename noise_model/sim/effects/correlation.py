@@ -19,8 +19,8 @@ import zlib
 import numpy as np
 
 from ...checks import check_integer_range, check_scalar_range
-from ...d435 import D435, SensorModel, axial_sigma_unchecked
-from .base import Effect, _fb, _to_depth, _to_disparity, _z_true, check_sensor_model, gaussian_random_field
+from ...d435 import D435, SensorModel
+from .base import Effect, _fb, _to_depth, _to_disparity, _z_true, check_sensor_model, gaussian_random_field, model_sigma
 from .spec import EffectSpec
 
 __all__ = ["correlated_noise", "static_pattern", "static_noise", "CORRELATED_NOISE_DEFAULTS"]
@@ -50,9 +50,10 @@ class _CorrelatedNoise(Effect):
             zt = np.asarray(zt, dtype=np.float64)
             if zt.shape != z.shape:
                 raise ValueError(f"correlated_noise: context['z_true'] must have shape {z.shape}, got {zt.shape}")
-            hit = np.isfinite(zt) & np.isfinite(theta) & (zt > 0)
+            with np.errstate(invalid="ignore"):
+                hit = np.isfinite(zt) & np.isfinite(theta) & (zt > 0)
             sigma = np.zeros(z.shape)
-            sigma[hit] = self.params["sigma_z_fraction"] * axial_sigma_unchecked(zt[hit], theta[hit], self.model)
+            sigma[hit] = self.params["sigma_z_fraction"] * model_sigma(self.model, zt, theta, hit, context, self.name)
         return z + sigma * g
 
 
@@ -102,7 +103,7 @@ class _StaticNoise(_StaticField):
         with np.errstate(invalid="ignore"):
             hit = np.isfinite(zt) & np.isfinite(theta) & (zt > 0)
         sigma = np.zeros(z.shape)
-        sigma[hit] = self.params["sigma_z_fraction"] * axial_sigma_unchecked(zt[hit], theta[hit], self.model)
+        sigma[hit] = self.params["sigma_z_fraction"] * model_sigma(self.model, zt, theta, hit, context, self.name)
         return z + sigma * G
 
 
@@ -119,8 +120,10 @@ def correlated_noise(sigma_m: float | None = None, length_px: float = CORRELATED
     Forward model: z' = z + sigma * g, g a unit-variance Gaussian random field with correlation
     exp(-h^2 / (2 length_px^2)) between pixels h apart (:func:`gaussian_random_field`, from ``rng``, a
     fresh field each frame), sigma = ``sigma_m`` or ``sigma_z_fraction * sigma_z(z_true, theta)`` (the
-    correlated part scales with the matching error, as the white part does). The white reference noise
-    stays: the total per-pixel variance is sigma_z^2 + sigma^2.
+    correlated part scales with the matching error, as the white part does), sigma_z that of the axial
+    noise in effect (``context['sigma_z']``: the reference's, or :func:`~.residuals.axial_refit`'s once it
+    ran; ``model``'s without it, :mod:`.base`). The white noise stays: the total per-pixel variance is
+    sigma_z^2 + sigma^2.
 
     Parameters
     ----------
@@ -134,7 +137,7 @@ def correlated_noise(sigma_m: float | None = None, length_px: float = CORRELATED
         true depth and incidence angle (``context['z_true']``, ``theta``), in (0, 10]. When neither is
         given: 1.0 (the correlated part as strong as the paper's white noise).
     model : SensorModel
-        The sigma_z of ``sigma_z_fraction`` (the paper's D435 by default).
+        The sigma_z of ``sigma_z_fraction`` when the frame's context holds none (the paper's D435 by default).
 
     Returns
     -------
@@ -201,8 +204,9 @@ def static_noise(sigma_z_fraction: float = 0.8, length_px: float = 6.0, seed: in
     pattern (:func:`static_pattern`), which is a fixed disparity offset. Intel's Depth Quality Tool
     reports the two parts separately (spatial against temporal noise, ``tools/depth-quality/readme.md``).
 
-    Forward model: z' = z + sigma_z_fraction * sigma_z(z_true, theta) * G(u, v), sigma_z of ``model``
-    at the true depth and incidence angle (``context['z_true']``, ``theta``), G the unit field of
+    Forward model: z' = z + sigma_z_fraction * sigma_z(z_true, theta) * G(u, v), sigma_z that of the axial
+    noise in effect at the true depth and incidence angle (``context['sigma_z']``: the reference's, or
+    :func:`~.residuals.axial_refit`'s once it ran; ``model``'s without it), G the unit field of
     :func:`static_pattern` (zero mean and unit standard deviation over the image, correlation
     exp(-h^2 / (2 length_px^2)), drawn from ``numpy.random.default_rng([seed, crc32(capture_id), H, W])``,
     never from the frame's ``rng``). The temporal noise is unchanged: the temporal mean of N frames
@@ -222,7 +226,7 @@ def static_noise(sigma_z_fraction: float = 0.8, length_px: float = 6.0, seed: in
     seed : int
         Seed of the field's realisation.
     model : SensorModel
-        The sigma_z the field scales with (the paper's D435 by default).
+        The sigma_z the field scales with when the frame's context holds none (the paper's D435 by default).
     """
     ps = {"sigma_z_fraction": check_scalar_range(sigma_z_fraction, "sigma_z_fraction", 0.0, 10.0, open_lo=True),
           "length_px": check_scalar_range(length_px, "length_px", 0.0, 200.0, open_lo=True),

@@ -15,7 +15,7 @@ import numpy as np
 
 from ...checks import check_scalar_range
 from ...d435 import D435, SensorModel, axial_sigma_unchecked
-from .base import Effect, _fb, _to_depth, _to_disparity, _valid, _z_true, check_sensor_model
+from .base import Effect, _fb, _to_depth, _to_disparity, _valid, _z_true, check_sensor_model, model_sigma
 from .spec import EffectSpec
 
 __all__ = ["axial_refit", "outliers"]
@@ -39,8 +39,8 @@ class _AxialRefit(Effect):
     def __init__(self, params: dict, model: SensorModel):
         super().__init__(params)
         self.model = model
-        self.new_model = replace(model, axial_coefficients=(params["c0"], params["c1"], params["c2"],
-                                                            params["c_theta"]))
+        self.new_model = replace(model, family="paper", axial_coefficients=(params["c0"], params["c1"],
+                                                                             params["c2"], params["c_theta"]))
 
     def _apply(self, z, theta, rng, context):
         zt = _z_true(context, z.shape, self.name)
@@ -48,13 +48,18 @@ class _AxialRefit(Effect):
         z_ref = z if z_ref is None else np.asarray(z_ref, dtype=np.float64)
         if z_ref.shape != z.shape:
             raise ValueError(f"{self.name}: context['z_ref'] must have shape {z.shape}, got {z_ref.shape}")
-        hit = _valid(zt) & np.isfinite(theta) & np.isfinite(z_ref)
-        ratio = np.ones(z.shape)
-        s_ref = axial_sigma_unchecked(zt[hit], theta[hit], self.model)
+        with np.errstate(invalid="ignore"):
+            hit = _valid(zt) & np.isfinite(theta) & np.isfinite(z_ref)
+        s_ref = model_sigma(self.model, zt, theta, hit, context, self.name)
         s_new = axial_sigma_unchecked(zt[hit], theta[hit], self.new_model)
-        ratio[hit] = s_new / s_ref
+        ratio = np.where(s_ref > 0, s_new / np.where(s_ref > 0, s_ref, 1.0), 1.0)
         out = z.copy()
-        out[hit] = z[hit] + (ratio[hit] - 1.0) * (z_ref[hit] - zt[hit])
+        out[hit] = z[hit] + (ratio - 1.0) * (z_ref[hit] - zt[hit])
+        prev = context.get("sigma_z")
+        sig = np.zeros(z.shape) if prev is None else np.array(prev, dtype=np.float64)
+        sig[hit] = s_new
+        sig.flags.writeable = False
+        context["sigma_z"] = sig              # the effects after it scale with the refitted noise
         return out
 
 
@@ -97,9 +102,12 @@ def axial_refit(c0: float = D435.axial_coefficients[0], c1: float = D435.axial_c
     z' = z + (sigma_new / sigma_ref - 1) (z_ref - z_true), with z_ref the depth right after the
     reference noise (``context['z_ref']``, set by
     :func:`noise_model.analysis.capture_data.simulate_capture`; without it, z itself: then put axial_refit
-    first, as :data:`~noise_model.sim.effects.ORDER` does) and sigma_* the sigma_z of ``model`` and of
-    the new coefficients at (z_true, theta). The noise stays Gaussian, independent per
-    pixel and frame, with standard deviation sigma_new exactly; nothing is drawn from ``rng``.
+    first, as :data:`~noise_model.sim.effects.ORDER` does), sigma_ref the reference noise's sigma
+    (``context['sigma_z']``, set by :func:`noise_model.sim.add_noise`; ``model``'s without it) and
+    sigma_new the paper's form with the new coefficients at (z_true, theta). The noise stays Gaussian,
+    independent per pixel and frame, with standard deviation sigma_new exactly; nothing is drawn from
+    ``rng``. ``context['sigma_z']`` becomes sigma_new, so that the effects after it whose size is a
+    fraction of sigma_z (``correlated_noise``, ``static_noise``) are fractions of the refitted noise.
 
     D435 values: the paper's (0.001063, 0.0007278, 0.003949, 0.022); quieter units and modes reach
     ~0.4-0.6 of them (elevation_mapping's fit). Parameters in [0, 0.05] m, [0, 0.05], [0, 0.05] 1/m,
@@ -116,7 +124,7 @@ def axial_refit(c0: float = D435.axial_coefficients[0], c1: float = D435.axial_c
     c_theta : float
         Angle term [m^-1/2], in [0, 1].
     model : SensorModel
-        The reference (the paper's D435).
+        The reference (the paper's D435), when the frame's context holds no ``sigma_z``.
     """
     ps = {"c0": check_scalar_range(c0, "c0", 0.0, 0.05, open_lo=True), "c1": check_scalar_range(c1, "c1", 0.0, 0.05),
           "c2": check_scalar_range(c2, "c2", 0.0, 0.05),
