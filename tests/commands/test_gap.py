@@ -235,6 +235,29 @@ def test_forward_selection_finds_the_toy_effect_and_ablation_confirms_it():
     assert top["stratum"]["image_cell"][1] == 0 if "image_cell" in top["stratum"] else True
 
 
+def test_an_effect_is_material_by_its_share_of_the_gap_left():
+    # a wide band (most of the gap) and a 0.3 mm bias: after the band, the bias removes most of what is
+    # left, though far less than 5 % of the baseline; the rule takes it, and its threshold is 5 % of the
+    # held-out gap before its round
+    caps, by_id = _toy_set()
+    ids = [c.id for c in caps]
+    real = _toy_sim(by_id, ids, [("band", {"m": 40}), ("bias", {"b": 0.0003})], 12, 5)
+    fits = {"band": {"m": 40}, "bias": {"b": 0.0003}}
+    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
+    dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
+                     lambda i, e, n: _toy_sim(by_id, i, e, n, 99), lambda name, base: fits[name], n_splits=32,
+                     n_boot=32)
+    rep = dg.run(["bias", "band"]).report
+    assert [e["name"] for e in rep["effects"]] == ["band", "bias"]
+    base = rep["baseline"]["gap_heldout"]
+    band, bias = rep["effects"]
+    assert band["gap_heldout_after"] - bias["gap_heldout_after"] < 0.05 * base        # immaterial to the baseline
+    r2 = rep["rounds"][1]
+    assert r2["heldout_test"]["min_delta"] >= 0.05 * r2["gap_heldout_before"] - 1e-12
+    assert r2["heldout_test"]["delta"] >= r2["heldout_test"]["min_delta"]
+    assert bias["ablation"]["confirmed"] and rep["final"]["shrink_heldout"] > 0.99
+
+
 # ---------------------------------------------------------------------------------------------
 # orchestration: capture set on disk -> report -> effects again
 # ---------------------------------------------------------------------------------------------
