@@ -1,23 +1,37 @@
 # Two commands do all set-up on a fresh machine:
-#   make demo   creates .venv, installs elevmap into it, runs the demo (writes demo.rrd and demo.png)
+#   make demo   creates .venv, installs elevmap into it, compiles its kernels once, runs the demo (writes demo.rrd
+#               and demo.png)
 #   make test   same set-up, then the whole test suite
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# numba compiles each kernel once into its cache (NUMBA_CACHE_DIR when set, as .ci/run does; else __pycache__
+# folders beside the sources) and every later command loads it. `elevmap warmup` fills the cache right after
+# installing; it runs again when a file defining kernels changes (numba recompiles that file's kernels) or for
+# another NUMBA_CACHE_DIR (one stamp per cache).
+KERNEL_SOURCES := $(shell grep -rl --include='*.py' njit noise_model elevmap 2>/dev/null)
+WARM   := $(VENV)/.warm$(subst /,_,$(NUMBA_CACHE_DIR))
 
-.PHONY: demo test bench install system-deps clean
+.PHONY: demo test bench install warmup system-deps clean
 
-demo: $(STAMP)
+demo: $(WARM)
 	$(BIN)/elevmap demo
 
-test: $(STAMP)
+test: $(WARM)
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)
+bench: $(WARM)
 	$(BIN)/elevmap bench
 
-install: $(STAMP)
+install: $(WARM)
+
+warmup: $(WARM)
+
+$(WARM): $(STAMP) $(KERNEL_SOURCES)
+	@echo "compiling the numba kernels once (a minute or two; later commands start at once)"
+	$(BIN)/elevmap warmup
+	@touch $@
 
 # pyrealsense2 links libusb-1.0. Install it with apt when we are root; otherwise say what is missing.
 # Only the RealSense sources need it: everything else works without.

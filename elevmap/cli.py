@@ -80,6 +80,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--json", metavar="PATH", help="write the run's summary as JSON")
         p.add_argument("--overwrite", action="store_true", help="replace an existing --rrd/--json file")
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
+        p.add_argument("--view-rate", type=float, default=None, metavar="HZ",
+                       help="with --rrd/--spawn: log the points, trail, map plots and meshes at most HZ times per "
+                            "second of the source's time (default 10; every frame's depth and pose are logged)")
+        p.add_argument("--png-depth", action="store_true",
+                       help="with --rrd: log uint16 depth PNG-compressed (smaller; about 25 ms per 848x480 frame)")
         if name == "run":
             _ros_options(p)
             p.add_argument("--bag-out", metavar="PATH",
@@ -272,6 +277,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", metavar="PATH", help="also write what was found as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier capture set in --out and --json")
 
+    p = sub.add_parser("warmup", help="compile every numba kernel once, into the cache later commands load",
+                       description="Compile the numba kernels the commands use (the noise model of both families "
+                                   "and the map; the simulator; the physical D435) into numba's cache: "
+                                   "NUMBA_CACHE_DIR when set, else __pycache__ folders beside the sources. Later "
+                                   "commands load them instead of compiling (a cold cache costs tens of seconds "
+                                   "in the first command that maps). `make demo` and `make test` run it once after "
+                                   "installing. A warm cache compiles nothing and says so.")
+    p.add_argument("--only", default=None, metavar="GROUPS",
+                   help="comma-separated subset of: mapping, simulator, stereo (default: all)")
+    p.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
+
     p = sub.add_parser("bench", help="time the numba kernels against their NumPy references",
                        description="Median per-frame time of each compiled kernel after warm-up, next to its "
                                    "NumPy reference measured in the same run; the physical D435 (stereo) next "
@@ -281,8 +297,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="timed frames of the NumPy references (default: 10)")
     p.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
     p.add_argument("--only", default=None, metavar="GROUPS",
-                   help="comma-separated subset of: noise, mapper, move_to, height_scan, first_frame, render, stereo, "
-                        "ros")
+                   help="comma-separated subset of: noise, mapper, update, move_to, height_scan, first_frame, render, "
+                        "stereo, ros")
     p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -376,6 +392,8 @@ def _print_summary(summary: dict) -> None:
     err = summary.get("error")
     line = (f"{summary['frames']} frames, {summary['ms_per_frame_median']:.2f} ms per frame (median), "
             f"{100 * summary['known_fraction']:.1f}% of the map known")
+    if "frames_per_s" in summary:
+        line += f", {summary['frames_per_s']:.1f} frames/s end to end"
     if err:
         line += (f"; against the true terrain: median |error| {1000 * err['median_abs_m']:.1f} mm, RMSE on flat "
                  f"cells {1000 * err['flat_rmse_m']:.1f} mm and within {2} cells of step edges "
@@ -393,6 +411,10 @@ def _cmd_run(args) -> int:
     config = _load_config(args.config)
     if args.model is not None:
         config = dataclasses.replace(config, sensor_model=args.model)
+    if args.view_rate is not None:
+        config = dataclasses.replace(config, view_rate_hz=args.view_rate)
+    if args.png_depth:
+        config = dataclasses.replace(config, png_depth=True)
     if config.sensor_model:
         from noise_model.d435 import SensorModel
 
@@ -491,6 +513,14 @@ def _cmd_bench(args) -> int:
     if args.json:
         write_json_atomic(args.json, report)
         print(f"wrote {args.json}")
+    return 0
+
+
+def _cmd_warmup(args) -> int:
+    from .commands.warmup import WARMUP_GROUPS, run_warmup
+
+    groups = WARMUP_GROUPS if args.only is None else tuple(g.strip() for g in args.only.split(",") if g.strip())
+    run_warmup(groups, nthreads=args.threads)
     return 0
 
 
@@ -660,7 +690,8 @@ def _cmd_characterize(args) -> int:
 
 
 COMMANDS = {"gap": _cmd_gap, "characterize": _cmd_characterize, "captures": _cmd_captures, "compare": _cmd_compare,
-            "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "run": _cmd_run, "replay": _cmd_run,
+            "simulate": _cmd_simulate, "demo": _cmd_demo, "bench": _cmd_bench, "warmup": _cmd_warmup,
+            "run": _cmd_run, "replay": _cmd_run,
             "bag-info": _cmd_bag_info}
 
 

@@ -9,6 +9,7 @@ is scored against it; with a recording path every frame goes to rerun through :m
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,12 +41,23 @@ class MappingConfig:
         Re-centre the map on the camera every frame (robot-centric).
     score_every : int
         Score against the truth every k frames (and at the last).
-    log_every, mesh_every : int
-        Log the frame every k frames; the map meshes every k logged frames.
+    log_every : int
+        Log the frame (depth, pose, exact values: what a replay maps) every k frames.
+    view_rate_hz : float
+        The views of the map (points with their covariance ellipsoids, the trail, the map's statistics
+        plots) are logged at most this many times per second of the source's time: the frames of a 30 or
+        90 Hz camera each go to the recording, but redrawing 4000 points and the map for each would cost
+        more than mapping them. One view per slot of ``1 / view_rate_hz`` s of frame stamps (the first
+        frame of each slot), so the output depends on the stamps only, never on the machine's speed.
+        What is mapped does not depend on it.
+    mesh_every : int
+        The map meshes every k logged views (and at the end).
     max_points, max_ellipsoids : int
-        Sub-sampled points and covariance ellipsoids logged per frame.
+        Sub-sampled points and covariance ellipsoids logged per view.
     png_depth : bool
-        Log uint16 depth losslessly PNG-compressed (replays bit-exact, about half the size).
+        Log uint16 depth losslessly PNG-compressed: about 0.7 of the raw size on noisy depth, a tenth on
+        smooth depth, but the encoding takes about 25 ms per 848x480 frame, more than the mapping itself;
+        raw depth (the default) costs about 2 ms. Both replay bit-exact.
     sensor_model : str
         A sensor model file (``elevmap-sensor-model/1`` or ``/2``, as ``elevmap characterize`` writes
         it) for every camera of the run; "" = the paper's D435.
@@ -58,10 +70,11 @@ class MappingConfig:
     follow: bool = True
     score_every: int = 1
     log_every: int = 1
+    view_rate_hz: float = 10.0
     mesh_every: int = 20
     max_points: int = 4000
     max_ellipsoids: int = 300
-    png_depth: bool = True
+    png_depth: bool = False
     sensor_model: str = ""
 
     def __post_init__(self):
@@ -74,6 +87,7 @@ class MappingConfig:
             check_bool(getattr(self, name), name)
         for name in ("score_every", "log_every", "mesh_every", "max_points", "max_ellipsoids"):
             check_int(getattr(self, name), name, 1)
+        check_real(self.view_rate_hz, "view_rate_hz", 0.0, lo_open=True, unit=" [Hz]")
         if not isinstance(self.sensor_model, str):
             raise ValueError(f"sensor_model must be a file path (a string), got {self.sensor_model!r}")
 
@@ -227,7 +241,11 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     -------
     dict
         frames, per-frame timing [ms] (median, p95, mean), final map statistics and, with a truth,
-        its error (:func:`map_error`), plus the map itself under "map" (an ElevationMap).
+        its error (:func:`map_error`), plus the map itself under "map" (an ElevationMap); ``frames_per_s``
+        end to end (from the recording's opening to its file in place) and ``seconds``: ``total`` and its
+        parts ``source`` (waiting for frames: reading, decoding, simulating), ``mapping`` (the mapper),
+        ``scoring`` (against the truth), ``logging`` (rerun, the recording's closing included) and
+        ``callbacks``.
     """
     from tqdm import tqdm
 
@@ -236,6 +254,8 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     mapper = Mapper(emap, nthreads=nthreads)
     model = SensorModel.load(config.sensor_model) if config.sensor_model else D435
     recording = None
+    clock = {"source": 0.0, "mapping": 0.0, "scoring": 0.0, "logging": 0.0, "callbacks": 0.0}
+    t_start = time.perf_counter()
     if rrd_path is not None or spawn:
         from . import viz
 
@@ -247,9 +267,13 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     try:
         rec = recording.__enter__() if recording is not None else None
         logger = _Logger(rec, config, notes) if rec is not None else None
-        for frame in tqdm(frames, total=total, desc="mapping", unit="frame", disable=not show_progress):
+        if recording is not None:
+            clock["logging"] += time.perf_counter() - t_start
+        source = tqdm(frames, total=total, desc="mapping", unit="frame", disable=not show_progress)
+        for frame in _timed(source, clock):
             if not isinstance(frame, Frame):
                 raise ValueError(f"sources must yield elevmap.frame.Frame records, got {type(frame).__name__}")
+            t0 = time.perf_counter()
             if frame.camera not in mapper.cameras:
                 mapper.add_camera(Camera(frame.camera, frame.K, frame.width, frame.height,
                                          depth_scale=frame.depth_scale, model=model))
@@ -266,32 +290,49 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
                                      stamp=frame.stamp)
             times.append(stats["total_ms"])
             trail.append(T[:3, 3].copy())
+            t1 = time.perf_counter()
+            clock["mapping"] += t1 - t0
             fn = truth_fn or frame.truth.get("height")
             score = None
             if fn is not None and (n_frames % config.score_every == 0):
                 score = map_error(emap, fn)
                 scores.append(score)
+            t2 = time.perf_counter()
+            clock["scoring"] += t2 - t1
             if logger is not None and n_frames % config.log_every == 0:
                 logger.log(n_frames, frame, T, emap, mapper, stats, score, trail, first_stamp)
+            t3 = time.perf_counter()
+            if logger is not None:
+                clock["logging"] += t3 - t2
             for callback in callbacks:
                 callback(frame, T, emap)
+            clock["callbacks"] += time.perf_counter() - t3
             n_frames += 1
         if n_frames == 0:
             raise ValueError("the source gave no depth frames: nothing to map")
+        t0 = time.perf_counter()
         final = map_error(emap, truth_fn or _last_truth(frame if n_frames else None)) if (
             n_frames and (truth_fn or _last_truth(frame))) else None
+        t1 = time.perf_counter()
+        clock["scoring"] += t1 - t0
         if logger is not None and n_frames:
-            logger.final(emap, final)
+            logger.final(emap, final, trail)
     except BaseException as exc:
         if recording is not None:
             recording.__exit__(type(exc), exc, exc.__traceback__)
         raise
     if recording is not None:
         recording.__exit__(None, None, None)
+    t_end = time.perf_counter()
+    if recording is not None:
+        clock["logging"] += t_end - t1
     t = np.array(times) if times else np.array([math.nan])
+    wall = t_end - t_start
     out = {"frames": n_frames, "ms_per_frame_median": float(np.median(t)), "ms_per_frame_p95": float(np.percentile(t, 95)),
            "ms_per_frame_mean": float(np.mean(t)), "known_fraction": emap.known_fraction(),
-           "map_cells": emap.n ** 2, "resolution_m": emap.resolution_m, "map": emap}
+           "map_cells": emap.n ** 2, "resolution_m": emap.resolution_m, "map": emap,
+           "frames_per_s": n_frames / wall if wall > 0 else math.nan,
+           "seconds": {"total": wall, **clock}}
     if final is not None:
         out["error"] = final
     if rrd_path is not None:
@@ -299,12 +340,37 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     return out
 
 
+def _timed(frames, clock: dict):
+    """Yield the frames of ``frames``, adding the time each takes to arrive to ``clock["source"]`` [s]."""
+    it = iter(frames)
+    while True:
+        t0 = time.perf_counter()
+        try:
+            frame = next(it)
+        except StopIteration:
+            clock["source"] += time.perf_counter() - t0
+            return
+        clock["source"] += time.perf_counter() - t0
+        yield frame
+
+
 def _last_truth(frame):
     return None if frame is None else frame.truth.get("height")
 
 
+#: Points per logged piece of the trail: the trail is logged as pieces of at most this many positions, only
+#: the last one re-logged at each view, so a long run's trail costs the same per view as a short one's.
+TRAIL_PIECE = 256
+
+
 class _Logger:
-    """Everything a mapping run sends to rerun (through elevmap.viz, the project's rerun package)."""
+    """Everything a mapping run sends to rerun (through elevmap.viz, the project's rerun package).
+
+    Every logged frame: the time, the camera pose, the depth image and the exact values a replay needs
+    (``meta/<camera>``), and the mapper's time per frame. At most ``view_rate_hz`` times per second of
+    frame stamps (:meth:`view_due`): the points with their ellipsoids, the trail, the map's statistics and,
+    every ``mesh_every`` views, the map meshes.
+    """
 
     def __init__(self, rec, config: MappingConfig, notes):
         from . import viz
@@ -314,10 +380,24 @@ class _Logger:
         self.config = config
         self.cameras = set()
         self.logged = 0
+        self.views = 0
+        self._slot = None
+        self._trail_piece = 0
         viz.log_world_frame(rec, "world")
         self.has_notes = bool(notes)
         if notes:
             viz.log_text(rec, "notes", notes)
+
+    def view_due(self, stamp: float, first_stamp: float) -> bool:
+        """Whether the frame stamped ``stamp`` [s] opens a new view slot: slot k holds the stamps in
+        [k, k + 1) / view_rate_hz after the first frame's; a stamp earlier than the last view's (a source
+        whose clock restarts) opens one too. A millionth of a slot of tolerance keeps frames stamped
+        exactly on the slot boundaries (a 10 Hz camera at 10 Hz views) in their own slots despite rounding."""
+        slot = math.floor((stamp - first_stamp) * self.config.view_rate_hz + 1e-6)
+        if self._slot is not None and slot == self._slot:
+            return False
+        self._slot = slot
+        return True
 
     def log(self, i, frame: Frame, T, emap, mapper, stats, score, trail, first_stamp):
         viz, rec = self.viz, self.rec
@@ -336,7 +416,14 @@ class _Logger:
             viz.log_depth(rec, f"world/{cam}/depth", frame.depth, meter=meter)
         viz.log_exact(rec, f"meta/{cam}", K=frame.K, T_map_cam=T, pose_cov=frame.pose_cov, stamp=frame.stamp,
                       depth_scale=frame.depth_scale, index=frame.index)
-        viz.log_trail(rec, "world/trail", np.array(trail))
+        viz.log_scalar(rec, "plots/time/ms_per_frame", stats["total_ms"])
+        self.logged += 1
+        if self.view_due(frame.stamp, first_stamp):
+            self._view(emap, mapper, score, trail)
+
+    def _view(self, emap, mapper, score, trail):
+        viz, rec = self.viz, self.rec
+        self._trail(trail)
         pts = mapper.last_points
         if pts is not None and len(pts.pixel):
             k = np.linspace(0, len(pts.pixel) - 1, min(self.config.max_points, len(pts.pixel))).astype(np.int64)
@@ -348,7 +435,6 @@ class _Logger:
             cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 0], cov[:, 1, 1] = hc[:, 0], hc[:, 1], hc[:, 1], hc[:, 2]
             cov[:, 2, 2] = np.asarray(pts.height_var)[k]
             viz.log_covariance_ellipsoids(rec, "world/points_cov", np.asarray(pts.points_map)[k], cov)
-        viz.log_scalar(rec, "plots/time/ms_per_frame", stats["total_ms"])
         viz.log_scalar(rec, "plots/cells/known", int(np.isfinite(emap.data[0]).sum()))
         var = emap.data[1][np.isfinite(emap.data[1])]
         if var.size:
@@ -356,9 +442,19 @@ class _Logger:
         if score is not None and score["known_cells"]:
             viz.log_scalar(rec, "plots/metres/median_abs_error", score["median_abs_m"])
             viz.log_scalar(rec, "plots/fraction/coverage_2sigma", score["coverage_2sigma"])
-        if self.logged % self.config.mesh_every == 0:
+        if self.views % self.config.mesh_every == 0:
             self._meshes(emap)
-        self.logged += 1
+        self.views += 1
+
+    def _trail(self, trail):
+        """Log the trail's last piece, after the pieces completed since the last view (each once, whole).
+        Piece j holds positions [j P - 1, (j + 1) P) (P = :data:`TRAIL_PIECE`): consecutive pieces share one
+        position, so the drawn path has no gaps."""
+        piece = (len(trail) - 1) // TRAIL_PIECE
+        for j in range(self._trail_piece, piece + 1):
+            lo, hi = max(0, j * TRAIL_PIECE - 1), min(len(trail), (j + 1) * TRAIL_PIECE)
+            self.viz.log_trail(self.rec, f"world/trail/{j}", np.array(trail[lo:hi]))
+        self._trail_piece = piece
 
     def _meshes(self, emap):
         viz = self.viz
@@ -368,7 +464,9 @@ class _Logger:
         viz.log_height_mesh(self.rec, "world/map/elevation", xs, ys, h, viz.colormap(h, *viz.robust_range(h)))
         viz.log_height_mesh(self.rec, "world/map/sigma", xs, ys, h, viz.colormap(sigma, 0.001, 0.1, log=True))
 
-    def final(self, emap, error):
+    def final(self, emap, error, trail):
+        """The end of the run: the whole trail and the final map's meshes, whatever the view rate."""
+        self._trail(trail)
         self._meshes(emap)
         if error is not None:
             self.viz.log_text(self.rec, "result", "\n".join(f"- {k}: {v:.4g}" for k, v in error.items()))
