@@ -24,11 +24,12 @@ from noise_model.sim import (
     render_planar_target, walk,
 )
 
-from ..map import queries
+from ..map import fusion, queries
 from ..map.elevation_map import ElevationMap
+from ..map.floor import FloorWorkspace, fuse_floor, fuse_floor_reference
 from ..mapper import Camera, Mapper
 
-__all__ = ["bench_scene", "floor_scene", "run_bench", "format_table", "GROUPS", "STEREO_TARGET_MS"]
+__all__ = ["bench_scene", "floor_scene", "update_scene", "run_bench", "format_table", "GROUPS", "STEREO_TARGET_MS"]
 
 SIZES = ((848, 480), (424, 240))
 
@@ -61,8 +62,10 @@ def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
     return 1e3 * float(np.median(times))
 
 
-GROUPS = ("noise", "mapper", "move_to", "height_scan", "first_frame", "render", "stereo", "ros")
+GROUPS = ("noise", "mapper", "update", "move_to", "height_scan", "first_frame", "render", "stereo", "ros")
 MAPPER_SIZES = ((1280, 720), (848, 480), (424, 240))
+#: Sizes of the ``update`` and ``floor`` records (points per frame: every pixel of the image).
+UPDATE_SIZES = ((848, 480), (424, 240))
 #: The physical D435's time budget per frame [ms] at each size (width, height) on a 2-core machine.
 STEREO_TARGET_MS = {(424, 240): 150.0, (848, 480): 600.0}
 #: Timed frames of the physical D435 per size, at most (a frame takes a tenth of a second or more).
@@ -83,6 +86,27 @@ def floor_scene(width: int, height: int, seed: int = 0):
     d = np.clip(np.round(np.maximum(z, 0.0) / 0.001), 0, 65535).astype(np.uint16)
     d[rng.random(d.shape) < 0.02] = 0
     return d, K, T, np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
+
+
+def update_scene(width: int, height: int):
+    """Map-frame points as a user with their own point clouds passes them to ``ElevationMap.update``: a floor and
+    three boxes (0.15-0.3 m) seen by a D435 0.5 m up, pitched 40 deg down, every pixel valid, noise-free.
+
+    Returns (points_map (N, 3) float64 row-ordered [m], height_var (N,) = 0.05 z^2 [m^2] with z the depth
+    (elevation_mapping_cupy's default point variance), T_map_cam (4, 4)).
+    """
+    from noise_model.geometry import deproject
+    from noise_model.sim import Box
+
+    scene = Scene([Box(centre=(1.2, 0.3, 0.1), size=(0.4, 0.4, 0.2)),
+                   Box(centre=(1.6, -0.4, 0.15), size=(0.5, 0.3, 0.3)),
+                   Box(centre=(2.2, 0.2, 0.075), size=(0.6, 0.6, 0.15), yaw_deg=25.0)], ground_z=0.0)
+    K = nm.D435.intrinsics(width, height)
+    T = camera_extrinsics((0.0, 0.0, 0.5), pitch_down_deg=40.0)
+    z, _ = render_depth(scene, K, width, height, T, max_range_m=20.0)
+    points_cam = deproject(z, K).reshape(-1, 3)
+    points_map = np.ascontiguousarray(points_cam @ T[:3, :3].T + T[:3, 3])
+    return points_map, 0.05 * z.reshape(-1) ** 2, T
 
 
 def _record(name, width, height, impl, ms, items, frames, threads, **extra):
@@ -126,6 +150,61 @@ def _bench_mapper(frames, reference_frames, n, bar):
                 ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
                 out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
                                    map_cells=mapper.map.n ** 2, resolution_m=0.04))
+    return out
+
+
+def _bench_update(frames, reference_frames, n, bar):
+    """``ElevationMap.update`` of map-frame points (:func:`update_scene`) next to its NumPy reference and the
+    compute floor (:func:`elevmap.map.floor.fuse_floor`: information-form sums per cell, nothing else) on the same
+    points, and each stage of the update timed alone (``stages`` [ms]): the check of the points' values (the first
+    pass with it less without it), gating and accumulation (the first pass), the cell merge (spread, change rule,
+    bounds; the fusion less its first pass), the neighbourhood spread, and the visibility clean-up (an update with
+    the camera's origin, as the mapper runs it, less one without: ``cleanup_ms`` is the update with it)."""
+    from noise_model.numba_config import threads
+
+    out = []
+    for width, height in UPDATE_SIZES:
+        pts, var, T = update_scene(width, height)
+        origin = T[:3, 3].copy()
+        emap = ElevationMap(8.0, 0.04, nthreads=n)
+        k = [0]
+
+        def update(impl="numba", m=emap, sensor_origin=None):
+            k[0] += 1
+            return m.update(pts, var, stamp=0.033 * k[0], sensor_origin_map=sensor_origin, impl=impl)
+
+        extra = dict(map_cells=emap.n ** 2, resolution_m=0.04, layout="row-ordered (N, 3)")
+        ms = _median_ms(update, frames, 3, bar)
+        ms_cleanup = _median_ms(lambda: update(sensor_origin=origin), frames, 3, bar)
+        ms = min(ms, _median_ms(update, frames, 3, bar))        # alternated: the same state of the machine
+        fp, g, ws = emap.fusion_params, emap.geometry, emap._ws
+        packed = fp.array(g.resolution_m)
+        with threads(n):
+            box = fusion.accumulate(emap.data, g, pts, var, None, packed, ws)
+            stage = {"gating_accumulation": _median_ms(lambda: fusion.accumulate(emap.data, g, pts, var, None, packed,
+                                                                                 ws, check=False), frames, 3, bar)}
+            checked = _median_ms(lambda: fusion.accumulate(emap.data, g, pts, var, None, packed, ws), frames, 3, bar)
+        fused = _median_ms(lambda: fusion.fuse_frame(emap.data, g, pts, var, None, 0.033 * k[0], fp, ws, n), frames,
+                           3, bar)
+        stage["validation"] = max(checked - stage["gating_accumulation"], 0.0)
+        stage["cell_merge"] = max(fused - checked, 0.0)
+        stage["neighbour_spread"] = _median_ms(lambda: emap._neighbours(box, None, "numba"), frames, 3, bar)
+        stage["cleanup"] = max(ms_cleanup - ms, 0.0)
+        stages = {key: round(stage[key], 4) for key in ("validation", "gating_accumulation", "cell_merge",
+                                                        "neighbour_spread", "cleanup")}
+        ref_map = ElevationMap(8.0, 0.04, nthreads=n)
+        ref = _median_ms(lambda: update("numpy", ref_map), reference_frames, 1, bar)
+        floor_map = ElevationMap(8.0, 0.04, nthreads=n)
+        fws = FloorWorkspace(floor_map.n)
+        floor = _median_ms(lambda: fuse_floor(floor_map.data, floor_map.geometry, pts, var, fws, n), frames, 3, bar)
+        floor_ref = _median_ms(lambda: fuse_floor_reference(floor_map.data, floor_map.geometry, pts, var),
+                               reference_frames, 1, bar)
+        npts = len(pts)
+        out += [_record("update", width, height, "numba", ms, npts, frames, n, stages=stages,
+                        cleanup_ms=round(ms_cleanup, 4), floor_ratio=round(ms / floor, 2), **extra),
+                _record("update", width, height, "numpy", ref, npts, reference_frames, 1, **extra),
+                _record("floor", width, height, "numba", floor, npts, frames, n, **extra),
+                _record("floor", width, height, "numpy", floor_ref, npts, reference_frames, 1, **extra)]
     return out
 
 
@@ -303,6 +382,7 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     map_ref = min(reference_frames, 3)
     total = (("noise" in groups) * len(SIZES) * (frames + reference_frames)
              + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
+             + ("update" in groups) * len(UPDATE_SIZES) * (8 * frames + 2 * reference_frames)
              + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
              + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1)
              + ("stereo" in groups) * len(STEREO_TARGET_MS) * min(frames, STEREO_MAX_FRAMES)
@@ -313,6 +393,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
             results += _bench_noise(frames, reference_frames, n, bar)
         if "mapper" in groups:
             results += _bench_mapper(frames, map_ref, n, bar)
+        if "update" in groups:
+            results += _bench_update(frames, reference_frames, n, bar)
         if "move_to" in groups:
             results += _bench_move_to(frames, n, bar)
         if "height_scan" in groups:
@@ -366,6 +448,11 @@ def format_table(report: dict) -> str:
             speed = f"<= {r['target_ms']:.0f}"
         pps = "" if r.get("points_per_s") is None else f"{r['points_per_s'] / 1e6:.2f}"
         lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{r['median_ms']:>11.3f}{pps:>11}{speed:>10}")
+    for r in rows:
+        if r["name"] == "update" and r["impl"] == "numba":
+            st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
+            lines.append(f"update {r['width']}x{r['height']}: {r['floor_ratio']:.1f}x the floor; with clean-up "
+                         f"{r['cleanup_ms']:.2f} ms; stages alone [ms]: {st}")
     if any(r["name"] == "stereo" for r in rows):
         lines.append("stereo: the physical D435, one frame (render, sensor noise, matching); "
                      "last column: its budget [ms]")

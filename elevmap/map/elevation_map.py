@@ -12,12 +12,10 @@ import math
 
 import numpy as np
 
-from noise_model.checks import check_points
-
 from . import fusion, grid_map, neighbours, prediction, queries, storage, visibility
 from .grid import GridGeometry
 from .layers import LAYERS, POINTS, UNKNOWN_VALUES
-from .settings import MIN_HEIGHT_VARIANCE, check_coordinates, check_map_memory
+from .settings import check_coordinates, check_map_memory
 
 __all__ = ["ElevationMap", "BYTES_PER_CELL"]
 
@@ -155,7 +153,12 @@ class ElevationMap:
         dict
             ``{"cells_updated": int, "cells_cleared": int}``.
         """
-        p = check_points(points_map, "points_map")
+        p = np.asarray(points_map)
+        if p.ndim != 2 or p.shape[1] != 3:
+            raise ValueError(f"points_map must have shape (N, 3), got {p.shape}")
+        if not (np.issubdtype(p.dtype, np.floating) or np.issubdtype(p.dtype, np.integer)):
+            raise ValueError(f"points_map must be floating point metres, got dtype {p.dtype}")
+        p = p.astype(np.float64, copy=False)       # any memory layout: the fusion reads it column by column
         n_pts = len(p)
         var = np.asarray(height_var)
         if var.shape != (n_pts,):
@@ -163,21 +166,11 @@ class ElevationMap:
         if not np.issubdtype(var.dtype, np.floating):
             raise ValueError(f"height_var must be floating point [m^2], got dtype {var.dtype}")
         var = var.astype(np.float64, copy=False)
-        if n_pts and not (np.all(np.isfinite(var)) and float(var.min()) > 0.0):
-            raise ValueError("height_var must be finite and > 0 [m^2]")
-        if n_pts and float(var.min()) < MIN_HEIGHT_VARIANCE:
-            raise ValueError(f"height_var holds {float(var.min()):.3g} m^2, below the smallest variance a point "
-                             f"may claim ({MIN_HEIGHT_VARIANCE:g} m^2)")
-        check_coordinates(p, "points_map")
-        if n_pts and float(var.max()) > 1e4:
-            raise ValueError(f"height_var holds values up to {float(var.max()):.3g}: variances must be in m^2")
         hcov = None
         if horizontal_cov is not None:
             hcov = np.asarray(horizontal_cov, dtype=np.float64)
             if hcov.shape != (n_pts, 3):
                 raise ValueError(f"horizontal_cov must have shape ({n_pts}, 3), got {hcov.shape}")
-            if not np.all(np.isfinite(hcov)) or (n_pts and float(min(hcov[:, 0].min(), hcov[:, 2].min())) < 0):
-                raise ValueError("horizontal_cov must be finite with non-negative variances (xx, yy)")
         if stamp is None:
             stamp = float(self.frames)
         try:
@@ -194,38 +187,41 @@ class ElevationMap:
             check_coordinates(origin, "sensor_origin_map")
         if impl not in ("numba", "numpy"):
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
-        return self._update_validated(np.ascontiguousarray(p), var, hcov, stamp, origin, impl)
+        # the values of the points (finite, coordinates and variances in range) are checked by the fusion
+        # (numba: in its first pass, before it changes anything; numpy: check_point_values first)
+        return self._update_validated(p, var, hcov, stamp, origin, impl)
 
     def _update_validated(self, p, var, hcov, stamp: float, origin, impl: str = "numba") -> dict:
-        """:meth:`update` on inputs already validated (the mapper's hot path: kernel output is)."""
-        n_pts = len(p)
+        """:meth:`update` on inputs whose shapes and dtypes are checked (the fusion checks their values)."""
+        clean = origin is not None and self.visibility_cleanup
         if impl == "numba":
-            touched = fusion.fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params, self._ws,
-                                        self.nthreads)
+            # with the clean-up to come, the fusion's pass keeps each cell's lowest ray end for it
+            touched, box = fusion.fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params,
+                                             self._ws, self.nthreads,
+                                             visibility.ENDPOINT_MARGIN_SIGMAS if clean else None)
         else:
-            touched = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params)
+            touched, box = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp,
+                                                       self.fusion_params)
         cleared = 0
-        if origin is not None and self.visibility_cleanup and n_pts:
-            cleared = self._visibility(origin, p, var, stamp, impl)
-        if self.fusion_params.neighbour_radius and n_pts:
-            self._neighbours(p, origin if cleared else None, impl)
+        if clean and box is not None:
+            cleared = self._visibility(origin, p, var, stamp, impl, box)
+        if self.fusion_params.neighbour_radius and box is not None:
+            self._neighbours(box, origin if cleared else None, impl)
         self.frames += 1
         self.last_stamp = stamp
         return {"cells_updated": touched, "cells_cleared": cleared}
 
-    def _neighbours(self, points_map, origin, impl) -> None:
-        """Recompute the neighbourhood spread around the cells this frame touched (its points' bounding
-        box, with the camera's position when visibility cleared cells on the rays)."""
-        x, y = points_map[:, 0], points_map[:, 1]       # one column at a time: a row-ordered (N, 3)
-        lo = np.array([x.min(), y.min()])               # array's axis-0 reduction is ~10x slower
-        hi = np.array([x.max(), y.max()])
+    def _neighbours(self, box, origin, impl) -> None:
+        """Recompute the neighbourhood spread around the cells this frame touched: ``box`` (i0, i1, j0, j1),
+        their first and last map row and column, with the camera's cell when visibility cleared cells on
+        the rays (clipped to the window: a ray enters the window between the camera and its point)."""
+        i0, i1, j0, j1 = box
         if origin is not None:
-            lo, hi = np.minimum(lo, origin[:2]), np.maximum(hi, origin[:2])
-        raw, _ = self.geometry.map_index(np.array([lo, hi]))
-        if np.any(raw[1] < 0) or np.any(raw[0] >= self.geometry.n):
-            return                                  # the frame lies wholly outside the window
-        ij = np.clip(raw, 0, self.geometry.n - 1)
-        rows, cols = (ij[0, 0], ij[1, 0]), (ij[0, 1], ij[1, 1])
+            (oi, oj), _ = self.geometry.map_index(origin[:2])
+            last = self.geometry.n - 1
+            oi, oj = min(max(int(oi), 0), last), min(max(int(oj), 0), last)
+            i0, i1, j0, j1 = min(i0, oi), max(i1, oi), min(j0, oj), max(j1, oj)
+        rows, cols = (i0, i1), (j0, j1)
         if impl == "numba":
             neighbours.update_neighbour_spread(self.data, self.geometry, self.fusion_params.neighbour_radius, rows,
                                                cols, self.nthreads, self.fusion_params.neighbour_estimator)
@@ -234,10 +230,15 @@ class ElevationMap:
                                                          self.fusion_params.neighbour_radius, rows, cols,
                                                          self.fusion_params.neighbour_estimator)
 
-    def _visibility(self, origin, points_map, height_var, stamp, impl) -> int:
-        fn = visibility.visibility_cleanup if impl == "numba" else visibility.visibility_cleanup_reference
-        return fn(self.data, self.geometry, origin, points_map, stamp, stride=self.cleanup_stride,
-                  nthreads=self.nthreads, height_var=height_var)
+    def _visibility(self, origin, points_map, height_var, stamp, impl, box) -> int:
+        """The clean-up of a fused frame (points checked; ``box``: the cells they reached, from the fusion)."""
+        if impl == "numba":
+            return visibility.visibility_cleanup_box(self.data, self.geometry, origin, points_map, stamp, box,
+                                                     self.cleanup_stride, self.nthreads, height_var,
+                                                     visibility.ENDPOINT_MARGIN_SIGMAS,
+                                                     (self._ws.acc, self._ws.stamp, self._ws.frame))
+        return visibility.visibility_cleanup_reference(self.data, self.geometry, origin, points_map, stamp,
+                                                       stride=self.cleanup_stride, height_var=height_var)
 
     # -- robot-centric motion --------------------------------------------------------------------
     def move_to(self, xy) -> dict:

@@ -34,11 +34,6 @@ last reset, accepted by the gate or not, with their own weights 1 / sigma_i^2 (t
 ``info_sq_sum`` and ``scatter`` layers keep its running sums); it counts only where the scatter is
 significant (``spread_alpha``) and large (``spread_ratio``).
 
-Scatter inflation: a frame's information in a cell is divided by the reduced chi-square of its accepted
-points when that is significant, chi2 = sum w_i (z_i - z_mean)^2 / (n - 1) above its 1 - 1e-4 quantile
-(Wilson-Hilferty): points that scatter more than their stated variances allow must not make the cell
-confident.
-
 Change: a single outlier (or a few) is ignored. When a cell's rejected points are at least
 ``change_min_points`` and outnumber its accepted ones, the terrain has changed (a box put down, a
 step): the prior's variance is inflated by the squared distance to the rejected points' mean, so that
@@ -59,7 +54,14 @@ After the update variances are clamped below at ``min_variance``; a cell whose v
 Parallel accumulation is race-free: the points are cut into ``PARTIALS`` fixed contiguous ranges,
 each summed into its own partial grid, and the partial grids are merged per cell in a fixed order,
 so the result is the same bit for bit whatever the thread count. Partial grids are reset lazily
-(a per-cell frame stamp), so a frame costs work only in the cells it touches.
+(a per-cell frame stamp), and the merge runs over the rows and columns the frame's points reached
+only, so a frame costs work only around the cells it touches. A cell's prior (its height, the
+variance the gate uses and the weight's tau^2) is read from the layers once per partial grid, when the
+grid first meets the cell in a frame, and kept beside its sums.
+
+The kernel checks each point's values in the same pass (:func:`elevmap.map.settings.check_point_values`
+is its NumPy reference): the pass writes only the partial grids, so a frame with a bad point leaves the
+map as it was, and the check costs a few comparisons per point instead of several passes over the arrays.
 :func:`fuse_frame_reference` computes the same update with NumPy (bincount); the tests hold the two
 equal.
 """
@@ -67,7 +69,8 @@ equal.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import warnings
+from dataclasses import InitVar, dataclass
 from statistics import NormalDist
 
 import numpy as np
@@ -77,24 +80,32 @@ from noise_model.formulas import dersimonian_laird_tau2, reduced_chi2_quantile
 from noise_model.numba_config import JIT, resolve_threads, threads
 
 from .neighbours import ESTIMATORS
-from .settings import check_bool, check_int, check_real
+from .settings import MAX_COORDINATE_M, MAX_POINT_VARIANCE, MIN_HEIGHT_VARIANCE, check_bool, check_int, check_real
+from .settings import check_point_values
 from .layers import (
     ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, LAYERS, MAX_HEIGHT, MIN_HEIGHT, NEIGHBOUR_SPREAD, INFO_SQ_SUM,
     INFO_SUM, POINTS, SCATTER, SPREAD, TIME, UPPER_BOUND, VARIANCE, ZERO_WHEN_UNKNOWN, clear_sums,
 )
 
-__all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "fuse_frame_reference", "PARTIALS"]
-
-
-#: Normal quantile of the significance level (1e-4) at which scatter inflates a frame's variance.
-CHI2_Z = 3.719
+__all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "fuse_frame_reference", "touched_box", "PARTIALS",
+           "REMOVED_PARAMS"]
 
 #: Number of partial grids (fixed, so that the summation order never depends on the thread count).
 PARTIALS = 8
-# accumulator fields per partial grid and cell
-(A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, R_W, R_WZ, R_N, R_ZMIN, R_ZMAX, H_X, H_XY, H_Y, A_WZZ, A_W0, A_WZ0, A_WZZ0,
- A_WW0) = range(18)
-NACC = 18
+# fields per partial grid and cell: the cell's prior as the frame found it (height, the gate's variance P,
+# the weight's tau^2), then the sums, those every point adds first, and the lowest ray end for the
+# visibility clean-up (its height and its point's index)
+(PR_H, PR_VG, PR_T2, A_W0, A_WZ0, A_WZZ0, A_WW0, A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, H_X, H_XY, H_Y, R_W, R_WZ, R_N,
+ R_ZMIN, R_ZMAX, LOW_Z, LOW_K) = range(22)
+NACC = 22
+
+#: Settings that earlier versions had and that no longer exist, with why: a config file or a saved map
+#: naming one is read with a ``DeprecationWarning`` (a value of the wrong type is still an error).
+REMOVED_PARAMS = {
+    "scatter_inflation": "dividing a frame's information in a cell by the reduced chi-square of its points changed "
+                         "no score on the paper's reference nor on the physical D435: the spreads cover what it "
+                         "guarded against (docs/fusion.md)",
+}
 
 
 @dataclass(frozen=True)
@@ -124,12 +135,6 @@ class FusionParams:
         Rejected points needed (and more than accepted) before a cell is taken to have changed.
     max_points_per_frame : float or None
         The information cap n_eff (None: off).
-    scatter_inflation : bool
-        Divide a frame's information in a cell by the reduced chi-square of its accepted points,
-        chi2 = sum w (z - z_mean)^2 / (n - 1), when it is significant (above its 1 - 1e-4 quantile under
-        the noise model, Wilson-Hilferty approximation): points that scatter more than their
-        stated variances allow (two surfaces in one cell, points bled over an edge, underestimated
-        noise) must not make the cell confident.
     spread_alpha : float or None
         Significance level of the spread test: a cell's points scatter about its height more than
         their modelled noise allows (chi-square above its 1 - spread_alpha quantile) -> tau^2 > 0
@@ -156,6 +161,9 @@ class FusionParams:
         fuses it but :meth:`ElevationMap.is_known`, the queries, the exports, the fused map and the scores
         treat it as unknown. A cell one or two pixels have seen holds a tail draw or a sliver of a
         neighbouring level as often as not. 3 by default; 1 reports every fused cell.
+    scatter_inflation : bool, optional
+        Removed (:data:`REMOVED_PARAMS`): accepted for old config files and saved maps, with a
+        ``DeprecationWarning``, and ignored.
     """
 
     mahalanobis_threshold: float = 2.5
@@ -165,14 +173,18 @@ class FusionParams:
     max_horizontal_variance: float = 0.5
     change_min_points: int = 3
     max_points_per_frame: float | None = None
-    scatter_inflation: bool = True
     spread_alpha: float | None = 0.5
     spread_ratio: float = 20.0
     neighbour_radius: int = 4
     neighbour_estimator: str = "paule_mandel"
     min_points: int = 3
+    scatter_inflation: InitVar[bool | None] = None
 
-    def __post_init__(self):
+    def __post_init__(self, scatter_inflation=None):
+        if scatter_inflation is not None:
+            check_bool(scatter_inflation, "scatter_inflation")
+            warnings.warn("FusionParams: scatter_inflation was removed and is ignored "
+                          f"({REMOVED_PARAMS['scatter_inflation']})", DeprecationWarning, stacklevel=3)
         for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
             check_real(getattr(self, name), name, 0.0, lo_open=True)
         if self.min_variance >= self.max_variance:
@@ -182,7 +194,6 @@ class FusionParams:
         check_int(self.change_min_points, "change_min_points", 1)
         if self.max_points_per_frame is not None:
             check_real(self.max_points_per_frame, "max_points_per_frame (None or a number)", 1.0)
-        check_bool(self.scatter_inflation, "scatter_inflation")
         if self.spread_alpha is not None:
             check_real(self.spread_alpha, "spread_alpha (None or a number)", 1e-12, 0.5)
         check_real(self.spread_ratio, "spread_ratio", 1.0, 1e6)
@@ -193,12 +204,11 @@ class FusionParams:
 
     def array(self, resolution_m: float) -> np.ndarray:
         """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off),
-        scatter inflation (0/1), spread z (normal quantile of 1 - spread_alpha; -1 = off), spread ratio."""
+        spread z (normal quantile of 1 - spread_alpha; -1 = off), spread ratio."""
         min_h = (resolution_m / 2) ** 2 if self.min_horizontal_variance is None else self.min_horizontal_variance
         return np.array([self.mahalanobis_threshold, self.min_variance, self.max_variance, min_h,
                          self.max_horizontal_variance, float(self.change_min_points),
                          0.0 if self.max_points_per_frame is None else float(self.max_points_per_frame),
-                         1.0 if self.scatter_inflation else 0.0,
                          -1.0 if self.spread_alpha is None else NormalDist().inv_cdf(1.0 - self.spread_alpha),
                          float(self.spread_ratio)])
 
@@ -304,19 +314,18 @@ def _weight_tau2(data, bi, bj):
 
 @njit(**JIT)
 def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h, stamp,
-                params, WZZ, W0, WZ0, WZZ0, WW0):
+                params, W0, WZ0, WZZ0, WW0):
     """Combine one cell's frame sums with its prior and write the cell (see the module docstring).
 
-    W, WZ, WZZ, N: sums of w, w z, w z^2 and the count over the frame's accepted points in the cell
+    W, WZ, N: sums of w, w z and the count over the frame's accepted points in the cell
     (w = 1 / (sigma^2 + tau^2)); Wr, WZr, Nr: the same over its rejected points; W0, WZ0, WZZ0, WW0:
     sums of w0, w0 z, w0 z^2, w0^2 over all its points with their own weights w0 = 1 / sigma^2 (for the
     spread); zmin .. zmaxr: their extremes; Hx, Hxy, Hy: the accepted points' weighted mean horizontal
     covariance. ``v`` below is P, the variance of the cell's fused mean.
     """
-    thr, min_var, max_var, min_h, max_h, change_min, cap, inflate = (
-        params[0], params[1], params[2], params[3], params[4], params[5], params[6], params[7])
-    spread_z = params[8]
-    ratio = params[9]
+    min_var, max_var, min_h, max_h, change_min, cap = params[1], params[2], params[3], params[4], params[5], params[6]
+    spread_z = params[7]
+    ratio = params[8]
     h = data[ELEVATION, bi, bj]
     known = not np.isnan(h)
     tau2 = data[SPREAD, bi, bj]
@@ -328,12 +337,6 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     if known and tau2 > 0.0 and data[POINTS, bi, bj] > 0.0:
         # random-effects prior: a mean of n points that scatter by tau^2, m at a time: P >= tau^2 m / n
         v = max(v, tau2 * max(N + Nr, 1.0) / data[POINTS, bi, bj])
-    if inflate > 0.0 and N >= 2.0:
-        # scatter inflation: chi2 = (WZZ - WZ^2 / W) / (N - 1); W, WZ /= chi2 where chi2 > chi2_{N-1, 1-1e-4} / (N - 1)
-        chi2 = (WZZ - WZ * WZ / W) / (N - 1.0)
-        if chi2 > _reduced_chi2_quantile(N - 1.0, CHI2_Z):
-            W /= chi2
-            WZ /= chi2
     # information cap: W, WZ *= n_eff / N where N > n_eff
     if cap > 0.0 and N > cap:
         s = cap / N
@@ -424,7 +427,13 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
 
 
 @njit(parallel=True, **JIT)
-def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, acc, acc_stamp, fid):
+def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, acc, acc_stamp, fid, check, box,
+                       low_margin):
+    """Pass 1, per partial grid over its fixed range of points: check each point's values (``check``),
+    gate it against its cell's prior and sum it into the cell's partial grid. Writes only ``acc``,
+    ``acc_stamp`` and ``box`` (per partial: points that failed the check, first and last map row and
+    column reached). With ``low_margin`` >= 0 it also keeps each cell's lowest ray end for the
+    visibility clean-up: the least z + low_margin sigma, ties to the smaller point index."""
     n = data.shape[1]
     P = acc.shape[0]
     N = x.shape[0]
@@ -433,92 +442,143 @@ def _fuse_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, stamp, params, 
     sy = gy0 % n
     inf = np.inf
     for p in prange(P):
-        lo = (N * p) // P
-        hi = (N * (p + 1)) // P
-        for k in range(lo, hi):
-            fi = math.floor(x[k] / res) - gx0
-            fj = math.floor(y[k] / res) - gy0
+        a0 = b0 = n
+        a1 = b1 = -1
+        nbad = 0
+        for k in range((N * p) // P, (N * (p + 1)) // P):
+            xk = x[k]
+            yk = y[k]
+            zk = z[k]
+            vk = var[k]
+            # finite and within MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE (NaN fails them all)
+            ok = (abs(xk) <= MAX_COORDINATE_M and abs(yk) <= MAX_COORDINATE_M and abs(zk) <= MAX_COORDINATE_M
+                  and vk >= MIN_HEIGHT_VARIANCE and vk <= MAX_POINT_VARIANCE) or not check
+            if has_h and check:
+                ok = ok and hcov[k, 0] >= 0.0 and hcov[k, 0] < inf and hcov[k, 2] >= 0.0 and hcov[k, 2] < inf \
+                    and abs(hcov[k, 1]) < inf
+            if not ok:
+                nbad += 1
+                continue
+            fi = math.floor(xk / res) - gx0
+            fj = math.floor(yk / res) - gy0
             if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
                 continue
-            bi = int(fi) + sx
+            i = int(fi)
+            j = int(fj)
+            a0 = min(a0, i)
+            a1 = max(a1, i)
+            b0 = min(b0, j)
+            b1 = max(b1, j)
+            bi = i + sx
             if bi >= n:
                 bi -= n
-            bj = int(fj) + sy
+            bj = j + sy
             if bj >= n:
                 bj -= n
             c = bi * n + bj
+            a = acc[p, c]
             if acc_stamp[p, c] != fid:
                 acc_stamp[p, c] = fid
                 for f in range(NACC):
-                    acc[p, c, f] = 0.0
-                acc[p, c, A_ZMIN] = inf
-                acc[p, c, R_ZMIN] = inf
-                acc[p, c, A_ZMAX] = -inf
-                acc[p, c, R_ZMAX] = -inf
-            zk = z[k]
-            vk = var[k]
-            t2 = _weight_tau2(data, bi, bj)
+                    a[f] = 0.0
+                a[A_ZMIN] = inf
+                a[R_ZMIN] = inf
+                a[A_ZMAX] = -inf
+                a[R_ZMAX] = -inf
+                a[LOW_Z] = inf
+                a[LOW_K] = -1.0
+                a[PR_H] = data[ELEVATION, bi, bj]
+                a[PR_VG] = data[VARIANCE, bi, bj] - neighbour_excess(data, bi, bj)
+                a[PR_T2] = _weight_tau2(data, bi, bj)
+            if low_margin >= 0.0 and zk < a[LOW_Z]:        # the ray's end is at z or above it
+                ze = zk + low_margin * math.sqrt(vk) if low_margin > 0.0 else zk
+                if ze < a[LOW_Z]:                            # k increases: ties keep the smaller index
+                    a[LOW_Z] = ze
+                    a[LOW_K] = k
+            t2 = a[PR_T2]
             w0 = 1.0 / vk
             w = 1.0 / (vk + t2) if t2 > 0.0 else w0     # unknown cell: its own weight
-            h = data[ELEVATION, bi, bj]
+            h = a[PR_H]
             d = zk - h
-            acc[p, c, A_W0] += w0          # every point, accepted or not, for the spread
-            acc[p, c, A_WZ0] += w0 * zk
-            acc[p, c, A_WZZ0] += w0 * zk * zk
-            acc[p, c, A_WW0] += w0 * w0
-            if (not np.isnan(h)) and d * d > thr2 * (vk + (data[VARIANCE, bi, bj] - neighbour_excess(data, bi, bj))):
-                acc[p, c, R_W] += w
-                acc[p, c, R_WZ] += w * zk
-                acc[p, c, R_N] += 1.0
-                acc[p, c, R_ZMIN] = min(acc[p, c, R_ZMIN], zk)
-                acc[p, c, R_ZMAX] = max(acc[p, c, R_ZMAX], zk)
+            a[A_W0] += w0          # every point, accepted or not, for the spread
+            a[A_WZ0] += w0 * zk
+            a[A_WZZ0] += w0 * zk * zk
+            a[A_WW0] += w0 * w0
+            if (not np.isnan(h)) and d * d > thr2 * (vk + a[PR_VG]):
+                a[R_W] += w
+                a[R_WZ] += w * zk
+                a[R_N] += 1.0
+                a[R_ZMIN] = min(a[R_ZMIN], zk)
+                a[R_ZMAX] = max(a[R_ZMAX], zk)
             else:
-                acc[p, c, A_W] += w
-                acc[p, c, A_WZ] += w * zk
-                acc[p, c, A_WZZ] += w * zk * zk
-                acc[p, c, A_N] += 1.0
-                acc[p, c, A_ZMIN] = min(acc[p, c, A_ZMIN], zk)
-                acc[p, c, A_ZMAX] = max(acc[p, c, A_ZMAX], zk)
+                a[A_W] += w
+                a[A_WZ] += w * zk
+                a[A_N] += 1.0
+                a[A_ZMIN] = min(a[A_ZMIN], zk)
+                a[A_ZMAX] = max(a[A_ZMAX], zk)
                 if has_h:
-                    acc[p, c, H_X] += w * hcov[k, 0]
-                    acc[p, c, H_XY] += w * hcov[k, 1]
-                    acc[p, c, H_Y] += w * hcov[k, 2]
+                    a[H_X] += w * hcov[k, 0]
+                    a[H_XY] += w * hcov[k, 1]
+                    a[H_Y] += w * hcov[k, 2]
+        box[p, 0] = nbad
+        box[p, 1] = a0
+        box[p, 2] = a1
+        box[p, 3] = b0
+        box[p, 4] = b1
+
+
+@njit(parallel=True, **JIT)
+def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, i0, i1, j0, j1):
+    """Pass 2, per map row of the touched rows i0..i1 and columns j0..j1 (buffer start (sx, sy)): merge
+    each cell's partial grids in their fixed order and write the cell (:func:`_merge_cell`). Returns the
+    cells touched."""
+    n = data.shape[1]
+    P = acc.shape[0]
+    inf = np.inf
     touched = 0
-    for c in prange(n * n):
-        W = WZ = WZZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = W0 = WZ0 = WZZ0 = WW0 = 0.0
-        zmin = zminr = inf
-        zmax = zmaxr = -inf
-        seen = False
-        for p in range(P):
-            if acc_stamp[p, c] == fid:
-                seen = True
-                W += acc[p, c, A_W]
-                WZ += acc[p, c, A_WZ]
-                WZZ += acc[p, c, A_WZZ]
-                W0 += acc[p, c, A_W0]
-                WZ0 += acc[p, c, A_WZ0]
-                WZZ0 += acc[p, c, A_WZZ0]
-                WW0 += acc[p, c, A_WW0]
-                Nn += acc[p, c, A_N]
-                zmin = min(zmin, acc[p, c, A_ZMIN])
-                zmax = max(zmax, acc[p, c, A_ZMAX])
-                Wr += acc[p, c, R_W]
-                WZr += acc[p, c, R_WZ]
-                Nr += acc[p, c, R_N]
-                zminr = min(zminr, acc[p, c, R_ZMIN])
-                zmaxr = max(zmaxr, acc[p, c, R_ZMAX])
-                Hx += acc[p, c, H_X]
-                Hxy += acc[p, c, H_XY]
-                Hy += acc[p, c, H_Y]
-        if not seen:
-            continue
-        touched += 1
-        if W > 0.0:
-            Hx /= W
-            Hxy /= W
-            Hy /= W
-        _merge_cell(data, c // n, c % n, W, WZ, Nn, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h,
-                    stamp, params, WZZ, W0, WZ0, WZZ0, WW0)
+    for i in prange(i0, i1 + 1):
+        bi = i + sx
+        if bi >= n:
+            bi -= n
+        for j in range(j0, j1 + 1):
+            bj = j + sy
+            if bj >= n:
+                bj -= n
+            c = bi * n + bj
+            W = WZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = W0 = WZ0 = WZZ0 = WW0 = 0.0
+            zmin = zminr = inf
+            zmax = zmaxr = -inf
+            seen = False
+            for p in range(P):
+                if acc_stamp[p, c] == fid:
+                    seen = True
+                    a = acc[p, c]
+                    W += a[A_W]
+                    WZ += a[A_WZ]
+                    W0 += a[A_W0]
+                    WZ0 += a[A_WZ0]
+                    WZZ0 += a[A_WZZ0]
+                    WW0 += a[A_WW0]
+                    Nn += a[A_N]
+                    zmin = min(zmin, a[A_ZMIN])
+                    zmax = max(zmax, a[A_ZMAX])
+                    Wr += a[R_W]
+                    WZr += a[R_WZ]
+                    Nr += a[R_N]
+                    zminr = min(zminr, a[R_ZMIN])
+                    zmaxr = max(zmaxr, a[R_ZMAX])
+                    Hx += a[H_X]
+                    Hxy += a[H_XY]
+                    Hy += a[H_Y]
+            if not seen:
+                continue
+            touched += 1
+            if W > 0.0:
+                Hx /= W
+                Hxy /= W
+                Hy /= W
+            _merge_cell(data, bi, bj, W, WZ, Nn, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h,
+                        stamp, params, W0, WZ0, WZZ0, WW0)
     return touched
 
 
@@ -536,29 +596,99 @@ def _cells(geom_n, gx0, gy0, res, x, y):
 
 
 def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params: FusionParams,
-               workspace: FusionWorkspace, nthreads=None) -> int:
-    """Fuse one frame into ``data`` (len(LAYERS), n, n) in place (numba); returns the cells touched.
+               workspace: FusionWorkspace, nthreads=None, low_margin=None) -> tuple[int, tuple | None]:
+    """Fuse one frame into ``data`` (len(LAYERS), n, n) in place (numba).
 
-    Inputs are assumed validated by the caller (``ElevationMap.update``).
+    Parameters
+    ----------
+    data : ndarray, shape (len(LAYERS), n, n)
+        The map's layers, buffer order.
+    geometry : elevmap.map.grid.GridGeometry
+    points_map : ndarray, shape (N, 3), float64
+        Map-frame points [m], any memory layout (shape and dtype checked by the caller).
+    height_var : ndarray, shape (N,), float64
+        Height variance of each point [m^2].
+    horizontal_cov : ndarray, shape (N, 3), float64, or None
+        (Sigma_xx, Sigma_xy, Sigma_yy) of each point [m^2].
+    stamp : float
+        Time of the frame [s], finite.
+    params : FusionParams
+    workspace : FusionWorkspace
+    nthreads : int, optional
+    low_margin : float, optional
+        Also keep each cell's lowest ray end, z + low_margin sigma, in the workspace for the visibility
+        clean-up (:func:`elevmap.map.visibility.visibility_cleanup_fused`).
+
+    Returns
+    -------
+    touched : int
+        Cells that received points.
+    box : (i0, i1, j0, j1) or None
+        First and last map row and column of those cells (None: none).
+
+    Raises
+    ------
+    ValueError
+        A point's values are out of range (:func:`elevmap.map.settings.check_point_values` names it); the
+        map is then unchanged.
     """
     n = resolve_threads(nthreads)
     has_h = horizontal_cov is not None
+    pa = params.array(geometry.resolution_m)
+    with threads(n):
+        box = accumulate(data, geometry, points_map, height_var, horizontal_cov, pa, workspace, low_margin=low_margin)
+        if box is None:
+            return 0, None
+        sx, sy = geometry.start_index
+        touched = _merge_kernel(data, int(sx), int(sy), has_h, float(stamp), pa, workspace.acc, workspace.stamp,
+                                workspace.frame, *box)
+    return int(touched), box
+
+
+def accumulate(data, geometry, points_map, height_var, horizontal_cov, packed_params, workspace, check=True,
+               low_margin=None):
+    """The fusion's first pass alone (numba, the caller's thread setting): check the points, gate them and
+    sum them into the workspace's partial grids for a new frame (and the lowest ray ends with
+    ``low_margin``, see :func:`fuse_frame`). ``data`` is not changed. Returns the touched cells' first and
+    last map row and column (i0, i1, j0, j1), or None; a ValueError naming the problem when a point fails
+    the check (``check=False``, for timing the check apart, skips it)."""
+    has_h = horizontal_cov is not None
     h = horizontal_cov if has_h else np.zeros((1, 3))
     workspace.frame += 1
-    with threads(n):
-        return int(_fuse_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, points_map[:, 0],
-                                points_map[:, 1], points_map[:, 2], height_var, h, has_h, float(stamp),
-                                params.array(geometry.resolution_m), workspace.acc, workspace.stamp,
-                                workspace.frame))
+    box = np.empty((PARTIALS, 5), dtype=np.int64)
+    _accumulate_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, points_map[:, 0], points_map[:, 1],
+                       points_map[:, 2], height_var, h, has_h, packed_params, workspace.acc, workspace.stamp,
+                       workspace.frame, bool(check), box, -1.0 if low_margin is None else float(low_margin))
+    if box[:, 0].sum() > 0:
+        check_point_values(points_map, height_var, horizontal_cov)
+        raise ValueError("points_map, height_var or horizontal_cov hold values out of range")   # not reached
+    if box[:, 2].max() < 0:
+        return None
+    return int(box[:, 1].min()), int(box[:, 2].max()), int(box[:, 3].min()), int(box[:, 4].max())
+
+
+def touched_box(geometry, points_map) -> tuple | None:
+    """First and last map row and column (i0, i1, j0, j1) of the cells that points fall in (NumPy);
+    None when none lies in the window."""
+    g = geometry
+    fi = np.floor(points_map[:, 0] / g.resolution_m) - g.gx0
+    fj = np.floor(points_map[:, 1] / g.resolution_m) - g.gy0
+    inside = (fi >= 0) & (fi < g.n) & (fj >= 0) & (fj < g.n)
+    if not inside.any():
+        return None
+    fi, fj = fi[inside], fj[inside]
+    return int(fi.min()), int(fi.max()), int(fj.min()), int(fj.max())
 
 
 def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov, stamp,
-                         params: FusionParams) -> int:
-    """NumPy reference of :func:`fuse_frame`: the same update, vectorised with bincount."""
+                         params: FusionParams) -> tuple[int, tuple | None]:
+    """NumPy reference of :func:`fuse_frame`: the same checks (:func:`elevmap.map.settings.check_point_values`)
+    and update, vectorised with bincount."""
+    check_point_values(points_map, height_var, horizontal_cov)
     g = geometry
     n = g.n
     p = params.array(g.resolution_m)
-    thr, min_var, max_var, min_h, max_h, change_min, cap, inflate, spread_z, ratio = p
+    thr, min_var, max_var, min_h, max_h, change_min, cap, spread_z, ratio = p
     x, y, z = points_map[:, 0], points_map[:, 1], points_map[:, 2]
     c, inside = _cells(n, g.gx0, g.gy0, g.resolution_m, x, y)
     z, var = z[inside], height_var[inside]
@@ -584,7 +714,6 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         return out
 
     W, WZ, N = bc(acc, w), bc(acc, w * z), bc(acc)
-    WZZ = bc(acc, w * z * z)
     every = np.ones_like(acc)
     W0, WZ0, WZZ0, WW0 = bc(every, w0), bc(every, w0 * z), bc(every, w0 * z * z), bc(every, w0 * w0)
     Wr, WZr, Nr = bc(rej, w), bc(rej, w * z), bc(rej)
@@ -594,11 +723,6 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     with np.errstate(invalid="ignore", divide="ignore"):
         if hc is not None:
             Hx, Hxy, Hy = (bc(acc, w * hc[:, k]) / W for k in range(3))
-        if inflate > 0:
-            k = np.maximum(N - 1, 1)
-            chi2 = np.where(N >= 2, (WZZ - WZ * WZ / W) / k, 0.0)
-            f = np.where(chi2 > reduced_chi2_quantile(k, CHI2_Z), chi2, 1.0)
-            W, WZ = W / f, WZ / f
         if cap > 0:
             s = np.where(N > cap, cap / np.maximum(N, 1), 1.0)
             W, WZ = W * s, WZ * s
@@ -676,4 +800,4 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     L[:, expire] = np.nan
     for name in ZERO_WHEN_UNKNOWN:
         L[LAYERS.index(name), expire] = 0.0
-    return int(seen.sum())
+    return int(seen.sum()), touched_box(geometry, points_map)

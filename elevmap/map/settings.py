@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
-__all__ = ["MAX_COORDINATE_M", "MAX_MAP_BYTES", "MIN_HEIGHT_VARIANCE", "check_bool", "check_int", "check_real",
-           "check_coordinates", "check_map_memory"]
+__all__ = ["MAX_COORDINATE_M", "MAX_MAP_BYTES", "MIN_HEIGHT_VARIANCE", "MAX_POINT_VARIANCE", "check_bool",
+           "check_int", "check_real", "check_coordinates", "check_point_values", "check_map_memory"]
 
 #: Largest |x|, |y|, |z| [m] of a map position, a point or a sensor origin: far beyond any robot's
 #: workspace (UTM and Earth-centred coordinates are below 1e7 m), far below where 64-bit cell indices and
@@ -31,6 +31,10 @@ MAX_MAP_BYTES = 8 * 2 ** 30
 #: Smallest accepted height variance of a point [m^2] ((1 nm)^2): below, the information 1/var and its
 #: square leave the range where the compiled kernel and its NumPy reference round alike.
 MIN_HEIGHT_VARIANCE = 1e-18
+
+#: Largest accepted height variance of a point [m^2] (sigma 100 m): above, the variances are not in m^2
+#: (mm^2, or a covariance of the wrong quantity).
+MAX_POINT_VARIANCE = 1e4
 
 
 def check_bool(value, name: str) -> bool:
@@ -75,6 +79,46 @@ def check_coordinates(a, name: str) -> None:
     if a.size and float(np.abs(a).max()) > MAX_COORDINATE_M:
         raise ValueError(f"{name} holds a coordinate of {float(np.abs(a).max()):.3g} m, beyond the "
                          f"{MAX_COORDINATE_M:.0e} m a map position may have")
+
+
+def check_point_values(points_map, height_var, horizontal_cov=None) -> None:
+    """Refuse a frame whose values a fusion cannot take (NumPy; shapes and dtypes checked before).
+
+    The fusion kernel makes the same checks per point while it sums the points
+    (:func:`elevmap.map.fusion.fuse_frame`), and calls this for the message when one fails.
+
+    Parameters
+    ----------
+    points_map : ndarray, shape (N, 3), float64
+        Map-frame points [m]: finite, within :data:`MAX_COORDINATE_M`.
+    height_var : ndarray, shape (N,), float64
+        Height variances [m^2]: finite, in [:data:`MIN_HEIGHT_VARIANCE`, :data:`MAX_POINT_VARIANCE`].
+    horizontal_cov : ndarray, shape (N, 3), float64, optional
+        (Sigma_xx, Sigma_xy, Sigma_yy) [m^2]: finite, with Sigma_xx, Sigma_yy >= 0.
+
+    Raises
+    ------
+    ValueError
+        Naming the array and what is wrong with it.
+    """
+    p = points_map
+    if not len(p):
+        return
+    bad = ~np.isfinite(p)
+    if bad.any():
+        raise ValueError(f"points_map has {int(bad.any(axis=1).sum())} non-finite row(s); drop invalid points first")
+    var = height_var
+    if not (np.all(np.isfinite(var)) and float(var.min()) > 0.0):
+        raise ValueError("height_var must be finite and > 0 [m^2]")
+    if float(var.min()) < MIN_HEIGHT_VARIANCE:
+        raise ValueError(f"height_var holds {float(var.min()):.3g} m^2, below the smallest variance a point "
+                         f"may claim ({MIN_HEIGHT_VARIANCE:g} m^2)")
+    check_coordinates(p, "points_map")
+    if float(var.max()) > MAX_POINT_VARIANCE:
+        raise ValueError(f"height_var holds values up to {float(var.max()):.3g}: variances must be in m^2")
+    h = horizontal_cov
+    if h is not None and (not np.all(np.isfinite(h)) or float(min(h[:, 0].min(), h[:, 2].min())) < 0):
+        raise ValueError("horizontal_cov must be finite with non-negative variances (xx, yy)")
 
 
 def check_map_memory(n: int, bytes_per_cell: int, resolution_m: float) -> int:

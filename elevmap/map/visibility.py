@@ -54,12 +54,12 @@ from numba import njit, prange
 
 from noise_model.numba_config import JIT, resolve_threads, threads
 
-from .fusion import PARTIALS, neighbour_excess
+from .fusion import LOW_K, LOW_Z, PARTIALS, neighbour_excess, touched_box
 from .layers import (
     ELEVATION, LAYERS, NEIGHBOUR_SPREAD, SPREAD, TIME, UNKNOWN_VALUES, UPPER_BOUND, VARIANCE, clear_sums,
 )
 
-__all__ = ["visibility_cleanup", "visibility_cleanup_reference"]
+__all__ = ["visibility_cleanup", "visibility_cleanup_box", "visibility_cleanup_reference"]
 
 
 #: Rays are dealt to the partial ceiling grids in blocks of this many consecutive rays (neighbouring
@@ -171,8 +171,10 @@ def _advance(i, s, e, u0, du, rdu, T):
 
 
 @njit(**JIT)
-def _cast(ceil, ox, oy, oz, px, py, pz, res, gx0, gy0, n):
-    """Walk one ray (Amanatides & Woo) and lower ``ceil`` (n*n, map order) by the ray's ceilings."""
+def _cast(ceil, ox, oy, oz, px, py, pz, res, gx0, gy0, n, i0, i1, j0, C):
+    """Walk one ray (Amanatides & Woo) and lower ``ceil`` by the ray's ceilings: ``ceil`` holds the cells of
+    map rows i0.. and columns j0..j0 + C - 1 in row-major order (they must hold every cell the ray crosses
+    in the window: those between the window's cell nearest the origin and the point's cell)."""
     u0 = ox / res
     v0 = oy / res
     ue = px / res
@@ -206,12 +208,12 @@ def _cast(ceil, ox, oy, oz, px, py, pz, res, gx0, gy0, n):
             iy = _advance(iy, sy, ey, v0, dv, rdv, T)
     i = ix - gx0
     j = iy - gy0
-    if not (i >= 0 and i < n and j >= 0 and j < n):     # cannot happen (the endpoint is inside)
+    if not (i >= i0 and i <= i1 and j >= j0 and j < j0 + C):     # cannot happen (the region holds the ray)
         return
     # from here on the ray stays inside the window: both indices move monotonically towards the
     # endpoint's cell, which is inside
-    k = i * n + j                                         # map-order cell index
-    dkx = sx * n
+    k = (i - i0) * C + (j - j0)                           # row-major index in the region
+    dkx = sx * C
     # borders through which the ray leaves the current cell (exact small integers as floats)
     bx = float(ix + 1) if sx > 0 else float(ix)
     by = float(iy + 1) if sy > 0 else float(iy)
@@ -245,13 +247,15 @@ def _zend(pts, zvar, margin, k):
 
 
 @njit(parallel=True, **JIT)
-def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp, stride, P):
-    n = data.shape[1]
-    nn = n * n
+def _lowest_kernel(n, gx0, gy0, res, pts, zvar, margin, P, i0, i1, j0, j1, best):
+    """Step 1 over the region of map rows i0..i1 and columns j0..j1, which holds every point's cell in the
+    window and the window's cell nearest the sensor origin (so every cell a ray crosses); its cells are
+    indexed row-major, c = (i - i0) C + (j - j0). ``best[c]`` receives the index of the cell's lowest
+    point (-1: none). Returns -1 when a point is not finite (nothing written to the map), else 0."""
+    C = j1 - j0 + 1
+    nn = (i1 - i0 + 1) * C
     N = pts.shape[0]
-    sx = gx0 % n
-    sy = gy0 % n
-    # 1. per-partial lowest point of each cell (map order), points in fixed contiguous ranges
+    # 1. per-partial lowest point of each cell (region order), points in fixed contiguous ranges
     low = np.empty((P, nn), dtype=np.int32)          # point indices (N < 2**31, checked)
     lowz = np.empty((P, nn))                         # their ray-end heights (no sqrt recomputed)
     bad = np.zeros(P, dtype=np.int64)
@@ -269,9 +273,9 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
                 continue
             fi = math.floor(pts[k, 0] / res) - gx0
             fj = math.floor(pts[k, 1] / res) - gy0
-            if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
+            if not (fi >= i0 and fi <= i1 and fj >= j0 and fj <= j1):     # the region lies in the window
                 continue
-            c = int(fi) * n + int(fj)
+            c = (int(fi) - i0) * C + int(fj) - j0
             zk = _zend(pts, zvar, margin, k)
             if lp[c] < 0 or zk < lz[c]:                 # k increases: ties keep the smaller index
                 lp[c] = np.int32(k)
@@ -280,7 +284,6 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
     if bad.sum() > 0:
         return -1                                   # non-finite points: nothing has been changed
     # merge in partial order: (z, index) lexicographic minimum
-    best = np.empty(nn, dtype=np.int64)
     for c in prange(nn):
         b = np.int64(-1)
         zb = np.inf
@@ -292,7 +295,46 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
                     b = k
                     zb = zk
         best[c] = b
-    # 2. rays: cells with points in map order, every stride-th
+    return 0
+
+
+@njit(parallel=True, **JIT)
+def _lowest_from_fusion(acc, acc_stamp, fid, low_z, low_k, n, sx, sy, i0, i1, j0, j1, best):
+    """Step 1 from the fusion's partial grids of this frame (stamp ``fid``; fields ``low_z``, ``low_k``:
+    each partial's lowest ray end in a cell and its point), merged in partial order to the same (z, index)
+    lexicographic minimum as :func:`_lowest_kernel`, over the same region."""
+    C = j1 - j0 + 1
+    P = acc.shape[0]
+    for i in prange(i0, i1 + 1):
+        bi = i + sx
+        if bi >= n:
+            bi -= n
+        for j in range(j0, j1 + 1):
+            bj = j + sy
+            if bj >= n:
+                bj -= n
+            c = bi * n + bj
+            b = np.int64(-1)
+            zb = np.inf
+            for p in range(P):
+                if acc_stamp[p, c] == fid and acc[p, c, low_k] >= 0.0:
+                    k = np.int64(acc[p, c, low_k])
+                    zk = acc[p, c, low_z]
+                    if b < 0 or zk < zb or (zk == zb and k < b):
+                        b = k
+                        zb = zk
+            best[(i - i0) * C + j - j0] = b
+
+
+@njit(parallel=True, **JIT)
+def _cast_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp, stride, P, i0, i1, j0, j1, best):
+    """Steps 2-5 over the region of :func:`_lowest_kernel`, from each cell's lowest point ``best``."""
+    n = data.shape[1]
+    C = j1 - j0 + 1
+    nn = (i1 - i0 + 1) * C
+    sx = gx0 % n
+    sy = gy0 % n
+    # 2. rays: cells with points in map order (row-major in the region is map order), every stride-th
     nr = 0
     for c in range(nn):
         if best[c] >= 0:
@@ -315,7 +357,8 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
         for b0 in range(p * _RAY_BLOCK, m, P * _RAY_BLOCK):
             for q in range(b0, min(b0 + _RAY_BLOCK, m)):
                 k = rays[q]
-                _cast(cp, ox, oy, oz, pts[k, 0], pts[k, 1], _zend(pts, zvar, margin, k), res, gx0, gy0, n)
+                _cast(cp, ox, oy, oz, pts[k, 0], pts[k, 1], _zend(pts, zvar, margin, k), res, gx0, gy0, n, i0, i1,
+                      j0, C)
     # 4. merge and apply
     cleared = 0
     for c in prange(nn):
@@ -324,10 +367,10 @@ def _visibility_kernel(data, gx0, gy0, res, pts, zvar, margin, ox, oy, oz, stamp
             cm = min(cm, ceil[p, c])
         if cm == np.inf:
             continue
-        bi = c // n + sx
+        bi = c // C + i0 + sx
         if bi >= n:
             bi -= n
-        bj = c % n + sy
+        bj = c % C + j0 + sy
         if bj >= n:
             bj -= n
         h = data[ELEVATION, bi, bj]
@@ -387,12 +430,45 @@ def visibility_cleanup(data, geometry, sensor_origin_map, points_map, stamp, str
     nt = resolve_threads(nthreads)
     if len(p) == 0:
         return 0
-    with threads(nt):
-        cleared = int(_visibility_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, p, zvar, margin,
-                                         o[0], o[1], o[2], stamp, stride, PARTIALS))
-    if cleared < 0:
-        raise _nonfinite_error(p)
-    return cleared
+    box = touched_box(geometry, p)
+    if box is None:                     # no point in the window: no ray
+        if not np.all(np.isfinite(p)):
+            raise _nonfinite_error(p)
+        return 0
+    return visibility_cleanup_box(data, geometry, o, p, stamp, box, stride, nt, zvar, margin)
+
+
+def visibility_cleanup_box(data, geometry, origin, points_map, stamp, box, stride, nthreads, zvar, margin,
+                           fused=None) -> int:
+    """:func:`visibility_cleanup` on checked inputs, given the first and last map row and column of the cells
+    holding points, ``box`` = (i0, i1, j0, j1) (as :func:`elevmap.map.fusion.fuse_frame` returns it): the
+    kernel then works on the rows and columns between them and the sensor origin only. ``zvar`` is the
+    points' height variance [m^2] (any array when ``margin`` = 0).
+
+    ``fused`` = (workspace.acc, workspace.stamp, workspace.frame) of the fusion of these very points with
+    ``low_margin=margin`` (:func:`elevmap.map.fusion.fuse_frame`): each cell's lowest point is then taken
+    from its partial grids instead of a pass over the points."""
+    n = geometry.n
+    i0, i1, j0, j1 = (int(v) for v in box)
+    if not (0 <= i0 <= i1 < n and 0 <= j0 <= j1 < n):
+        raise ValueError(f"box must be (first row, last row, first column, last column) within [0, {n - 1}], "
+                         f"got {box!r}")
+    (oi, oj), _ = geometry.map_index(np.asarray(origin, dtype=np.float64)[:2])
+    oi, oj = min(max(int(oi), 0), n - 1), min(max(int(oj), 0), n - 1)    # where a ray from outside enters
+    region = (min(i0, oi), max(i1, oi), min(j0, oj), max(j1, oj))
+    best = np.empty((region[1] - region[0] + 1) * (region[3] - region[2] + 1), dtype=np.int64)
+    g = geometry
+    with threads(resolve_threads(nthreads)):
+        if fused is not None:
+            acc, acc_stamp, fid = fused
+            sx, sy = g.start_index
+            _lowest_from_fusion(acc, acc_stamp, fid, LOW_Z, LOW_K, n, int(sx), int(sy), *region, best)
+        elif _lowest_kernel(n, g.gx0, g.gy0, g.resolution_m, points_map, zvar, float(margin), PARTIALS, *region,
+                            best) < 0:
+            raise _nonfinite_error(points_map)
+        return int(_cast_kernel(data, g.gx0, g.gy0, g.resolution_m, points_map, zvar, float(margin),
+                                float(origin[0]), float(origin[1]), float(origin[2]), float(stamp), int(stride),
+                                PARTIALS, *region, best))
 
 
 def _ray_cells(o, pt, res):

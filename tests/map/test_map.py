@@ -1,6 +1,9 @@
 """The elevation map: indexing, fusion and moves on tiny hand-checkable maps, and the behaviours a
 legged robot depends on (convergence, outliers, terrain change), numba against the NumPy reference."""
 
+import dataclasses
+import json
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -186,16 +189,23 @@ def random_frame(rng, n, spread=2.5):
     return pts, rng.uniform(1e-4, 1e-3, n), rng.uniform(1e-5, 1e-3, (n, 3)) * np.array([1, 0.01, 1])
 
 
-@pytest.mark.parametrize("cap", [None, 4.0])
-def test_numba_equals_reference_over_frames_and_moves(cap):
+@pytest.mark.parametrize("cap, stride", [(None, 1), (4.0, 3)])
+def test_numba_equals_reference_over_frames_and_moves(cap, stride):
     rng = np.random.default_rng(3)
-    a = ElevationMap(4.0, 0.1, fusion_params=FusionParams(max_points_per_frame=cap, change_min_points=2))
-    b = ElevationMap(4.0, 0.1, fusion_params=FusionParams(max_points_per_frame=cap, change_min_points=2))
+    a = ElevationMap(4.0, 0.1, fusion_params=FusionParams(max_points_per_frame=cap, change_min_points=2),
+                     cleanup_stride=stride)
+    b = ElevationMap(4.0, 0.1, fusion_params=FusionParams(max_points_per_frame=cap, change_min_points=2),
+                     cleanup_stride=stride)
+    cleared = 0
     for f in range(8):
         pts, var, hc = random_frame(rng, 3000)
-        sa = a.update(pts, var, stamp=f, horizontal_cov=hc if f % 2 else None)
-        sb = b.update(pts, var, stamp=f, horizontal_cov=hc if f % 2 else None, impl="numpy")
+        # the clean-up (sensor origin given) in most frames, from inside the window and from outside it
+        origin = None if f % 3 == 0 else (0.3 * f - 1.0, -0.7, 1.2) if f % 3 == 1 else (-3.5, 2.8, 2.0)
+        sa = a.update(pts, var, stamp=f, horizontal_cov=hc if f % 2 else None, sensor_origin_map=origin)
+        sb = b.update(pts, var, stamp=f, horizontal_cov=hc if f % 2 else None, sensor_origin_map=origin,
+                      impl="numpy")
         assert sa == sb
+        cleared += sa["cells_cleared"]
         if f in (2, 5):
             a.move_to((0.37 * f, -0.21 * f))
             b.move_to((0.37 * f, -0.21 * f))
@@ -206,6 +216,7 @@ def test_numba_equals_reference_over_frames_and_moves(cap):
         # rounds differently in the two summation orders
         np.testing.assert_allclose(a.data[rest], b.data[rest], rtol=1e-12, atol=1e-13)
         np.testing.assert_allclose(a.data[sums], b.data[sums], rtol=1e-9, atol=1e-9)
+    assert cleared > 20                             # the clean-up's rays cleared cells
 
 
 def test_same_result_with_one_and_two_threads():
@@ -213,8 +224,9 @@ def test_same_result_with_one_and_two_threads():
     one, two = ElevationMap(4.0, 0.1, nthreads=1), ElevationMap(4.0, 0.1, nthreads=2)
     for f in range(4):
         pts, var, hc = random_frame(rng, 20000)
-        one.update(pts, var, stamp=f, horizontal_cov=hc)
-        two.update(pts, var, stamp=f, horizontal_cov=hc)
+        origin = (0.2 * f, 0.1, 1.0) if f % 2 else None
+        assert (one.update(pts, var, stamp=f, horizontal_cov=hc, sensor_origin_map=origin)
+                == two.update(pts, var, stamp=f, horizontal_cov=hc, sensor_origin_map=origin))
         np.testing.assert_array_equal(one.data, two.data)
 
 
@@ -320,25 +332,45 @@ def test_points_that_scatter_beyond_their_noise_do_not_make_a_cell_confident(rng
     pts = np.column_stack([np.full(100, 0.5), np.full(100, 0.5), z])
     var = np.full(100, 0.005 ** 2)
     fine = dict(min_variance=1e-12)            # variances below the default floor are the point here
-    inflated = small_map(fusion_params=FusionParams(spread_alpha=None, **fine))
-    plain = small_map(fusion_params=FusionParams(scatter_inflation=False, spread_alpha=None, **fine))
+    plain = small_map(fusion_params=FusionParams(spread_alpha=None, **fine))
     default = small_map(fusion_params=FusionParams(**fine))
-    for m in (inflated, plain, default):
+    for m in (plain, default):
         m.update(pts, var)
+    # without the spread the cell claims the fixed-effect variance of 100 points: confident and wrong
     assert plain.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)
-    chi2 = np.sum((z - z.mean()) ** 2) / 0.005 ** 2 / 99                   # ~100: the points disagree
-    assert inflated.layer("variance")[1, 1] == pytest.approx(chi2 * 0.005 ** 2 / 100, rel=1e-9)
     # by default the cell's spread (DerSimonian-Laird tau^2 = sigma^2 (chi2 - 1) for equal weights, ~(5 cm)^2)
     # is added: the height at the cell's centre is either level, not their mean to +-0.5 mm
+    chi2 = np.sum((z - z.mean()) ** 2) / 0.005 ** 2 / 99                   # ~100: the points disagree
     tau2 = 0.005 ** 2 * (chi2 - 1.0)
     assert default.layer("spread")[1, 1] == pytest.approx(tau2, rel=1e-9)
-    assert default.layer("variance")[1, 1] == pytest.approx(chi2 * 0.005 ** 2 / 100 + tau2, rel=1e-9)
+    assert default.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100 + tau2, rel=1e-9)
     assert abs(default.layer("elevation")[1, 1] - 0.1) < 2 * np.sqrt(default.layer("variance")[1, 1])
     assert abs(default.layer("elevation")[1, 1] - 0.0) < 2 * np.sqrt(default.layer("variance")[1, 1])
-    # points that agree with their noise are not inflated
+    # points that agree with their noise add no spread
     ok = small_map(fusion_params=FusionParams(min_variance=1e-12))
     ok.update(np.column_stack([np.full(100, 0.5), np.full(100, 0.5), rng.normal(0, 0.005, 100)]), var)
     assert ok.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)
+
+
+def test_removed_scatter_inflation_is_read_with_a_deprecation_warning(tmp_path):
+    # an old config or saved map may name it: ignored with a warning; a value of the wrong type is an error
+    with pytest.warns(DeprecationWarning, match="scatter_inflation was removed"):
+        p = FusionParams(scatter_inflation=True)
+    assert p == FusionParams() and "scatter_inflation" not in dataclasses.asdict(p)
+    with pytest.raises(ValueError, match="scatter_inflation must be true or false"):
+        FusionParams(scatter_inflation="no")
+    m = small_map()
+    m.update([[0.5, 0.5, 1.0]] * 3, np.full(3, 1e-4))
+    m.save(tmp_path / "new.npz")
+    with np.load(tmp_path / "new.npz") as f:
+        arrays = dict(f)
+    params = json.loads(str(arrays["fusion_params"]))
+    assert "scatter_inflation" not in params
+    arrays["fusion_params"] = np.array(json.dumps({**params, "scatter_inflation": True}))
+    np.savez(tmp_path / "old.npz", **arrays)
+    with pytest.warns(DeprecationWarning, match="scatter_inflation"):
+        old = ElevationMap.load(tmp_path / "old.npz")
+    np.testing.assert_array_equal(old.data, m.data)
 
 
 @pytest.mark.parametrize("impl", ["numba", "numpy"])
@@ -372,7 +404,7 @@ def test_spread_counts_only_beyond_the_spread_ratio(rng):
     assert FusionParams().spread_ratio == 20.0
     for scale, ratio, expect in ((2.0, 9.0, False), (4.0, 9.0, True), (2.0, 1.0, True), (1.1, 1.5, False),
                                  (1.5, 1.5, True), (4.0, 20.0, False), (10.0, 20.0, True)):
-        m = small_map(fusion_params=FusionParams(spread_ratio=ratio, scatter_inflation=False, **fine))
+        m = small_map(fusion_params=FusionParams(spread_ratio=ratio, **fine))
         m.update(np.column_stack([xy, rng.normal(0.0, scale * 0.005, 400)]), var)
         assert (m.layer("spread")[1, 1] > 0) == expect, (scale, ratio)
 

@@ -179,9 +179,11 @@ def test_the_heights_change_only_where_neighbours_disagree(rng):
         a.update(np.column_stack([xy, z]), var, stamp=f)
         b.update(np.column_stack([xy, z]), var, stamp=f)
         # within twice the cells' own sigma (~90 points of 1 cm after 12 frames: 1 mm; an accepted outlier
-        # weighed differently moves a cell by a few mm)
+        # weighed differently moves a cell by a few mm, most in the first frames, while the cells are uncertain
+        # enough to accept it)
         diff = np.abs(a.layer("elevation") - b.layer("elevation"))[far]
-        assert np.nanmax(diff / np.sqrt(b.layer("variance")[far])) < 2.0
+        ratio = diff / np.sqrt(b.layer("variance")[far])
+        assert np.nanmax(ratio) < (2.0 if f >= 6 else 4.0) and np.nanmedian(ratio) < 0.05
     assert (a.layer("neighbour_spread")[np.isfinite(a.layer("elevation"))] >= 0).all()
     assert np.nanmedian(a.layer("neighbour_spread")) < 1e-5             # flat ground: ~ nothing added
     near_step = np.abs(xs - 0.13) < 0.15                     # rows of cells next to the step
