@@ -426,6 +426,27 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
         data[UPPER_BOUND, bi, bj] = np.nan
 
 
+@njit(inline="always", **JIT)
+def _open_cell(data, acc, acc_stamp, p, c, bi, bj, fid):
+    """Make partial grid p's entry of cell c (buffer index bi, bj) current for frame ``fid``: on its first
+    point of the frame, zero its sums and read the cell's prior (height, the gate's variance, the weight's
+    tau^2) from the layers once."""
+    if acc_stamp[p, c] != fid:
+        acc_stamp[p, c] = fid
+        a = acc[p, c]
+        for f in range(NACC):
+            a[f] = 0.0
+        a[A_ZMIN] = np.inf
+        a[R_ZMIN] = np.inf
+        a[A_ZMAX] = -np.inf
+        a[R_ZMAX] = -np.inf
+        a[LOW_Z] = np.inf
+        a[LOW_K] = -1.0
+        a[PR_H] = data[ELEVATION, bi, bj]
+        a[PR_VG] = data[VARIANCE, bi, bj] - neighbour_excess(data, bi, bj)
+        a[PR_T2] = _weight_tau2(data, bi, bj)
+
+
 @njit(parallel=True, **JIT)
 def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, acc, acc_stamp, fid, check, box,
                        low_margin):
@@ -433,7 +454,11 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
     gate it against its cell's prior and sum it into the cell's partial grid. Writes only ``acc``,
     ``acc_stamp`` and ``box`` (per partial: points that failed the check, first and last map row and
     column reached). With ``low_margin`` >= 0 it also keeps each cell's lowest ray end for the
-    visibility clean-up: the least z + low_margin sigma, ties to the smaller point index."""
+    visibility clean-up: the least z + low_margin sigma, ties to the smaller point index.
+
+    Consecutive points of a depth image mostly fall in the same cell: a run of points in one cell is
+    summed in registers and added to the partial grid when the run ends (the order of the additions is
+    fixed by the points' order, so the result does not depend on the thread count)."""
     n = data.shape[1]
     P = acc.shape[0]
     N = x.shape[0]
@@ -445,81 +470,110 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
         a0 = b0 = n
         a1 = b1 = -1
         nbad = 0
-        for k in range((N * p) // P, (N * (p + 1)) // P):
-            xk = x[k]
-            yk = y[k]
-            zk = z[k]
-            vk = var[k]
-            # finite and within MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE (NaN fails them all)
-            ok = (abs(xk) <= MAX_COORDINATE_M and abs(yk) <= MAX_COORDINATE_M and abs(zk) <= MAX_COORDINATE_M
-                  and vk >= MIN_HEIGHT_VARIANCE and vk <= MAX_POINT_VARIANCE) or not check
-            if has_h and check:
-                ok = ok and hcov[k, 0] >= 0.0 and hcov[k, 0] < inf and hcov[k, 2] >= 0.0 and hcov[k, 2] < inf \
-                    and abs(hcov[k, 1]) < inf
-            if not ok:
-                nbad += 1
-                continue
-            fi = math.floor(xk / res) - gx0
-            fj = math.floor(yk / res) - gy0
-            if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
-                continue
-            i = int(fi)
-            j = int(fj)
-            a0 = min(a0, i)
-            a1 = max(a1, i)
-            b0 = min(b0, j)
-            b1 = max(b1, j)
-            bi = i + sx
-            if bi >= n:
-                bi -= n
-            bj = j + sy
-            if bj >= n:
-                bj -= n
-            c = bi * n + bj
-            a = acc[p, c]
-            if acc_stamp[p, c] != fid:
-                acc_stamp[p, c] = fid
-                for f in range(NACC):
-                    a[f] = 0.0
-                a[A_ZMIN] = inf
-                a[R_ZMIN] = inf
-                a[A_ZMAX] = -inf
-                a[R_ZMAX] = -inf
-                a[LOW_Z] = inf
-                a[LOW_K] = -1.0
-                a[PR_H] = data[ELEVATION, bi, bj]
-                a[PR_VG] = data[VARIANCE, bi, bj] - neighbour_excess(data, bi, bj)
-                a[PR_T2] = _weight_tau2(data, bi, bj)
-            if low_margin >= 0.0 and zk < a[LOW_Z]:        # the ray's end is at z or above it
+        cur = -1
+        h = vg = t2 = 0.0
+        w0s = wz0s = wzz0s = ww0s = ws = wzs = ns = hxs = hxys = hys = rws = rwzs = rns = 0.0
+        zmn = rzmn = lowz = inf
+        zmx = rzmx = -inf
+        lowk = -1.0
+        xk = yk = zk = vk = 0.0
+        i = j = bi = bj = c = 0
+        end = (N * (p + 1)) // P
+        for k in range((N * p) // P, end + 1):
+            last = k == end
+            if not last:
+                xk = x[k]
+                yk = y[k]
+                zk = z[k]
+                vk = var[k]
+                # finite and within MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE (NaN fails all)
+                ok = (abs(xk) <= MAX_COORDINATE_M and abs(yk) <= MAX_COORDINATE_M and abs(zk) <= MAX_COORDINATE_M
+                      and vk >= MIN_HEIGHT_VARIANCE and vk <= MAX_POINT_VARIANCE) or not check
+                if has_h and check:
+                    ok = ok and hcov[k, 0] >= 0.0 and hcov[k, 0] < inf and hcov[k, 2] >= 0.0 and hcov[k, 2] < inf \
+                        and abs(hcov[k, 1]) < inf
+                if not ok:
+                    nbad += 1
+                    continue
+                fi = math.floor(xk / res) - gx0
+                fj = math.floor(yk / res) - gy0
+                if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
+                    continue
+                i = int(fi)
+                j = int(fj)
+                bi = i + sx
+                if bi >= n:
+                    bi -= n
+                bj = j + sy
+                if bj >= n:
+                    bj -= n
+                c = bi * n + bj
+            if last or c != cur:
+                if cur >= 0:                         # the run in cell cur ends: add it to the partial grid
+                    a = acc[p, cur]
+                    a[A_W0] += w0s
+                    a[A_WZ0] += wz0s
+                    a[A_WZZ0] += wzz0s
+                    a[A_WW0] += ww0s
+                    a[A_W] += ws
+                    a[A_WZ] += wzs
+                    a[A_N] += ns
+                    a[A_ZMIN] = min(a[A_ZMIN], zmn)
+                    a[A_ZMAX] = max(a[A_ZMAX], zmx)
+                    a[H_X] += hxs
+                    a[H_XY] += hxys
+                    a[H_Y] += hys
+                    a[R_W] += rws
+                    a[R_WZ] += rwzs
+                    a[R_N] += rns
+                    a[R_ZMIN] = min(a[R_ZMIN], rzmn)
+                    a[R_ZMAX] = max(a[R_ZMAX], rzmx)
+                    if lowz < a[LOW_Z]:                  # earlier points have smaller indices: ties keep them
+                        a[LOW_Z] = lowz
+                        a[LOW_K] = lowk
+                if last:
+                    break
+                a0 = min(a0, i)
+                a1 = max(a1, i)
+                b0 = min(b0, j)
+                b1 = max(b1, j)
+                _open_cell(data, acc, acc_stamp, p, c, bi, bj, fid)
+                cur = c
+                h = acc[p, c, PR_H]
+                vg = acc[p, c, PR_VG]
+                t2 = acc[p, c, PR_T2]
+                w0s = wz0s = wzz0s = ww0s = ws = wzs = ns = hxs = hxys = hys = rws = rwzs = rns = 0.0
+                zmn = rzmn = lowz = inf
+                zmx = rzmx = -inf
+                lowk = -1.0
+            if low_margin >= 0.0 and zk < lowz:          # the ray's end is at z or above it
                 ze = zk + low_margin * math.sqrt(vk) if low_margin > 0.0 else zk
-                if ze < a[LOW_Z]:                            # k increases: ties keep the smaller index
-                    a[LOW_Z] = ze
-                    a[LOW_K] = k
-            t2 = a[PR_T2]
+                if ze < lowz:                            # k increases: ties keep the smaller index
+                    lowz = ze
+                    lowk = k
             w0 = 1.0 / vk
             w = 1.0 / (vk + t2) if t2 > 0.0 else w0     # unknown cell: its own weight
-            h = a[PR_H]
             d = zk - h
-            a[A_W0] += w0          # every point, accepted or not, for the spread
-            a[A_WZ0] += w0 * zk
-            a[A_WZZ0] += w0 * zk * zk
-            a[A_WW0] += w0 * w0
-            if (not np.isnan(h)) and d * d > thr2 * (vk + a[PR_VG]):
-                a[R_W] += w
-                a[R_WZ] += w * zk
-                a[R_N] += 1.0
-                a[R_ZMIN] = min(a[R_ZMIN], zk)
-                a[R_ZMAX] = max(a[R_ZMAX], zk)
+            w0s += w0          # every point, accepted or not, for the spread
+            wz0s += w0 * zk
+            wzz0s += w0 * zk * zk
+            ww0s += w0 * w0
+            if (not np.isnan(h)) and d * d > thr2 * (vk + vg):
+                rws += w
+                rwzs += w * zk
+                rns += 1.0
+                rzmn = min(rzmn, zk)
+                rzmx = max(rzmx, zk)
             else:
-                a[A_W] += w
-                a[A_WZ] += w * zk
-                a[A_N] += 1.0
-                a[A_ZMIN] = min(a[A_ZMIN], zk)
-                a[A_ZMAX] = max(a[A_ZMAX], zk)
+                ws += w
+                wzs += w * zk
+                ns += 1.0
+                zmn = min(zmn, zk)
+                zmx = max(zmx, zk)
                 if has_h:
-                    a[H_X] += w * hcov[k, 0]
-                    a[H_XY] += w * hcov[k, 1]
-                    a[H_Y] += w * hcov[k, 2]
+                    hxs += w * hcov[k, 0]
+                    hxys += w * hcov[k, 1]
+                    hys += w * hcov[k, 2]
         box[p, 0] = nbad
         box[p, 1] = a0
         box[p, 2] = a1
