@@ -1,0 +1,188 @@
+"""Stage 4 of the depth -> map-points kernel: each valid pixel's point, its covariance in the camera frame,
+rotated into the map frame with the pose term, written to the outputs in row-major pixel order.
+
+The NumPy functions this stage compiles: :func:`noise_model.point_covariances` and
+:func:`noise_model.to_map_frame`, with the depth at which sigma_z is evaluated and the binning depth of
+:class:`noise_model.MapPoints` (the tests hold the whole kernel equal to
+:func:`noise_model.depth_to_map_points_reference`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from ..numba_config import JIT
+from .compiled import expected_model, interleaved, sigma_model
+from .surfaces import LEFT_EDGE, RIGHT_EDGE, SPECKLE
+
+__all__: list[str] = []
+
+
+@njit(parallel=True, **JIT)
+def points_stage(depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, noise_sigmas, b, bin_at_plane,
+                 gain_px, eg_px, eg2_px, alpha_px, beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z,
+                 pts, hvar, hcov, pix):
+    """Stage 4: fill columns offsets[v] .. offsets[v + 1] - 1 of pts (3, n) [m], hvar (n,) [m^2], hcov (3, n)
+    [m^2] and pix (n,) with the valid pixels of row v.
+
+    Parameters
+    ----------
+    depth, scale, zmin, zmax
+        As in :func:`noise_model.kernels.planes.moments_stage`.
+    up, vp : ndarray, shapes (W,), (H,)
+        Normalised pixel coordinates.
+    fx, fy : float
+        Focal lengths [px].
+    T : ndarray, shape (4, 4)
+        T_map_cam.
+    P : ndarray, shape (6, 6)
+        Pose covariance (translation [m^2], rotation [rad^2]), used where ``use_pose``.
+    params : ndarray
+        SensorModel.params_array.
+    noise_sigmas : float
+        sigma_z is evaluated at the local plane's depth when the pixel lies within this many sigma of it.
+    gain_px .. mixed_px : ndarray, shape (nby, W)
+        The window's plane per pixel column (:func:`noise_model.kernels.planes.planes_stage`).
+    offsets : ndarray, shape (H + 1,)
+        Where each row's points go (:func:`noise_model.kernels.planes.moments_stage`).
+    flags, speckle_z, surface_z : ndarray, shape (H, W)
+        The edges, speckles and surface medians of :mod:`noise_model.kernels.surfaces`.
+
+    Per row: (a) compaction of the valid pixels into row buffers, a scalar loop, (b) the arithmetic over
+    the compacted pixels, written to the outputs. (b) vectorises: it indexes from 0 or with unsigned
+    indices (a signed index that may be negative gets numba's wraparound select, which makes the access
+    non-contiguous for LLVM), is branch-free (selects), and indexes arrays directly rather than through
+    views created in the prange body, so that numba can mark them noalias. It is bound by its square
+    roots, its division and its stores, 64 B per point. Runs of valid pixels, each its own loop without
+    compaction, cost more: the scalar remainder of every run (a hole every 50 pixels) takes longer than the
+    compaction.
+    """
+    H, W = depth.shape
+    nby = gain_px.shape[0]
+    c0, c1, c2 = params[0], params[1], params[2]
+    s_left, s_right = params[5], params[6]
+    disp = params[7] > 0.5
+    R00, R01, R02, R10, R11, R12, R20, R21, R22 = (
+        T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
+    t0, t1, t2 = T[0, 3], T[1, 3], T[2, 3]
+    pix_var_x = 1.0 / (12.0 * fx * fx)
+    pix_var_y = 1.0 / (12.0 * fy * fy)
+    sL2 = s_left * s_left
+    sR2 = s_right * s_right
+    sLR2 = max(sL2, sR2)
+    # pose term J P J^T as quadratic forms in q = R p_cam, J = [I, -[q]_x], whose rows are
+    # x = e0 + q2 e4 - q1 e5, y = e1 - q2 e3 + q0 e5, z = e2 + q1 e3 - q0 e4
+    P00, P01, P03, P04, P05 = P[0, 0], P[0, 1], P[0, 3], P[0, 4], P[0, 5]
+    P11, P13, P14, P15 = P[1, 1], P[1, 3], P[1, 4], P[1, 5]
+    P22, P23, P24 = P[2, 2], P[2, 3], P[2, 4]
+    P33, P34, P35, P44, P45, P55 = P[3, 3], P[3, 4], P[3, 5], P[4, 4], P[4, 5], P[5, 5]
+    nan = np.nan
+    for ib in prange(nby):
+        by = interleaved(ib, nby)
+        cu = np.empty(W, dtype=np.int64)
+        cz = np.empty(W)
+        cf = np.empty(W, dtype=np.uint8)
+        cmed = np.empty(W)
+        crow = np.empty(W)
+        for v in range(by * b, min(H, by * b + b)):
+            if offsets[v + 1] == offsets[v]:
+                continue
+            # (a) compaction of the valid pixels: every pixel is stored, the count advances only on valid
+            # ones (stage 1's validity test, so k ends at the row's valid count and each row fills exactly
+            # its own output range); a speckle's replaced depth and the surface median where they exist
+            k = 0
+            for u in range(W):
+                z = depth[v, u] * scale
+                f = flags[v, u]
+                md = nan
+                if f & SPECKLE:
+                    md = speckle_z[v, u]
+                rm = nan
+                if mixed_px[by, u] > 0.0:
+                    rm = surface_z[v, u]
+                cu[k] = u
+                cz[k] = z
+                cf[k] = f
+                cmed[k] = md
+                crow[k] = rm
+                k += 1 if (z >= zmin) & (z <= zmax) else 0
+
+            # (b) the arithmetic over the compacted pixels. Unsigned output index: no wraparound select, so
+            # the stores are contiguous
+            k0 = np.uint64(offsets[v])
+            vv = vp[v]
+            b0 = R01 * vv + R02      # a = R r = R[:, 0] u' + (R[:, 1] v' + R[:, 2])
+            b1 = R11 * vv + R12
+            b2 = R21 * vv + R22
+            base = v * W
+            for j in range(np.uint64(k)):
+                u = cu[j]
+                z = cz[j]
+                f = cf[j]
+                # a speckle (median not NaN): its depth is its neighbours' median, and it is as uncertain
+                # as its distance from them (selects, so that the loop still vectorises)
+                md = cmed[j]
+                sp = md == md
+                dev2 = (z - md) * (z - md) if sp else 0.0
+                z = md if sp else z
+                zz = z * z
+                # lateral x variance: sigma_L^2 / sigma_R^2 on edges, else the pixel footprint
+                left = (f & LEFT_EDGE) != 0
+                right = (f & RIGHT_EDGE) != 0
+                var_x = (sLR2 if right else sL2) if left else (sR2 if right else zz * pix_var_x)
+                var_y = zz * pix_var_y
+                # sigma_z at the local plane's depth when the pixel lies within noise_sigmas of it (a
+                # weight must not depend on the pixel's own noise), else at its own depth. Both
+                # candidates are evaluated and one selected, so that each square root is taken once.
+                g = gain_px[by, u]
+                wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
+                zf = 1.0 / wf if wf > 0.0 else z
+                zf = zf if (zf >= zmin) & (zf <= zmax) else z
+                sf = max(sigma_model(zf, g, c0, c1, c2, disp), sigma_model(z, g, c0, c1, c2, disp))
+                at_plane = abs(z - zf) <= noise_sigmas * sf
+                zs = zf if at_plane else z
+                # E[sigma_z^2] over the uncertainty of theta (noise_model.axial_variance)
+                e_f = expected_model(zf, eg_px[by, u], eg2_px[by, u], c0, c1, c2, disp)
+                e_z = expected_model(z, eg_px[by, u], eg2_px[by, u], c0, c1, c2, disp)
+                s2 = max(e_f if at_plane else e_z, dev2)
+                # in a window of two surfaces the model's sigma is the fit's across both (its angle,
+                # its plane): the pixel's distance from its own surface's median is a floor, as a
+                # speckle's from its neighbours (a speckle: its replaced depth, so 0; NaN: not mixed)
+                zr = z if sp else crow[j]
+                dr = z - zr
+                s2 = max(s2, dr * dr) if dr == dr else s2
+                ru = up[u]
+                a0 = R00 * ru + b0
+                a1 = R10 * ru + b1
+                a2 = R20 * ru + b2
+                cxx = s2 * a0 * a0 + var_x * R00 * R00 + var_y * R01 * R01
+                cxy = s2 * a0 * a1 + var_x * R00 * R10 + var_y * R01 * R11
+                cyy = s2 * a1 * a1 + var_x * R10 * R10 + var_y * R11 * R11
+                czz = s2 * a2 * a2 + var_x * R20 * R20 + var_y * R21 * R21
+                q0 = z * a0                          # camera centre -> point, map frame
+                q1 = z * a1
+                q2 = z * a2
+                if use_pose:
+                    cxx += (P00 + 2.0 * (q2 * P04 - q1 * P05) + q2 * q2 * P44 - 2.0 * q1 * q2 * P45
+                            + q1 * q1 * P55)
+                    cyy += (P11 + 2.0 * (q0 * P15 - q2 * P13) + q2 * q2 * P33 - 2.0 * q0 * q2 * P35
+                            + q0 * q0 * P55)
+                    czz += (P22 + 2.0 * (q1 * P23 - q0 * P24) + q1 * q1 * P33 - 2.0 * q0 * q1 * P34
+                            + q0 * q0 * P44)
+                    cxy += (P01 - q2 * P03 + q0 * P05
+                            + q2 * (P14 - q2 * P34 + q0 * P45)
+                            - q1 * (P15 - q2 * P35 + q0 * P55))
+                i = k0 + j
+                # x, y where the ray meets the local plane (the cell the pixel looks at); in a window of
+                # two surfaces at the nearer of the plane and the surface median (a speckle: its
+                # replaced depth); z from the measured depth (see MapPoints)
+                zb = (min(zf, zr) if mixed_px[by, u] > 0.0 else zs) if bin_at_plane else z
+                pts[0, i] = zb * a0 + t0
+                pts[1, i] = zb * a1 + t1
+                pts[2, i] = q2 + t2
+                hvar[i] = czz
+                hcov[0, i] = cxx
+                hcov[1, i] = cxy
+                hcov[2, i] = cyy
+                pix[i] = base + u

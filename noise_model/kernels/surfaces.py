@@ -1,0 +1,281 @@
+"""Stage 3 of the depth -> map-points kernel, per pixel from its neighbours: depth edges and speckles,
+then in windows of two surfaces the row medians and the surface medians.
+
+The NumPy functions these stages compile: :func:`noise_model.depth_edges`, :func:`noise_model.despeckle`,
+:func:`noise_model.row_medians` and :func:`noise_model.surface_depths`. Every stage works per image row
+(rows grouped by block row, so that a pixel's block values are one row of the (nby, W) arrays), and
+writes only its own rows: the result does not depend on the thread count.
+
+What the next stage reads (:mod:`noise_model.kernels.points`):
+
+* ``flags`` (H, W) uint8 per valid pixel: :data:`LEFT_EDGE`, :data:`RIGHT_EDGE`, :data:`SPECKLE`;
+* ``speckle_z`` (H, W) [m]: a speckle's replacement depth, written at speckles only;
+* ``surface_z`` (H, W) [m]: the surface median, written at the valid pixels of mixed windows only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from ..numba_config import JIT
+from .compiled import agrees, agrees_select, interleaved, lane_median, rank_median, sigma_model, sort_lanes_any
+
+__all__ = ["LEFT_EDGE", "RIGHT_EDGE", "SPECKLE"]
+
+#: flags: the pixel is the left boundary of a nearer surface (its left neighbour is farther or invalid).
+LEFT_EDGE = 1
+#: flags: ... the right boundary.
+RIGHT_EDGE = 2
+#: flags: no neighbour agrees with the pixel; its depth is speckle_z.
+SPECKLE = 4
+
+#: Pixels whose medians are sorted together, one per SIMD lane (their values fit in L1).
+LANES = 128
+
+
+@njit(**JIT)
+def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2, disp, buf):
+    """The median depth of the valid 8 neighbours of pixel (v, u) at depth z when none of them agrees with
+    it (a speckle), else NaN (noise_model.despeckle)."""
+    H, W = depth.shape
+    k = 0
+    for dv in range(3):
+        r = v + dv - 1
+        if r < 0 or r >= H:
+            continue
+        for du in range(3):
+            c = u + du - 1
+            if c < 0 or c >= W or (dv == 1 and du == 1):
+                continue
+            zn = depth[r, c] * scale
+            if (zn >= zmin) & (zn <= zmax):
+                if agrees(zn, z, g, jump_rel, thr_sig, c0, c1, c2, disp):
+                    return np.nan
+                buf[k] = zn
+                k += 1
+    return rank_median(buf, k) if k > 0 else np.nan
+
+
+@njit(parallel=True, **JIT)
+def edges_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, gain_px, rowcount, flags, speckle_z):
+    """Stage 3a: the depth edges and speckles of every valid pixel into ``flags`` and ``speckle_z``.
+
+    Edges (noise_model.depth_edges with the pixel's theta): a valid pixel is on a left edge when its left
+    neighbour is invalid or farther by more than max(jump_rel z, thr_sig sigma_z(z, theta)), thr_sig =
+    jump_sigmas sqrt(2); right edges mirror it; the image border is no edge (-inf beyond it: not NaN, and
+    never farther). Speckles (noise_model.despeckle): no neighbour of 8 agrees. The two row neighbours
+    settle almost every pixel by the relative part of the threshold alone, in the branch-free loop; only
+    the few pixels both of them fail that way (edges, noisy far surfaces) are tested in full and, when
+    still alone, read their other six neighbours.
+
+    Parameters
+    ----------
+    jump_rel, thr_sig : float
+        The relative part of the threshold and its noise part per sigma_z.
+    gain_px : ndarray, shape (nby, W)
+        The angle gain of each pixel column's window (:func:`noise_model.kernels.planes.planes_stage`).
+    rowcount : ndarray, shape (H,)
+        Valid pixels per row (rows without any are skipped).
+    flags : ndarray, shape (H, W), uint8, out
+    speckle_z : ndarray, shape (H, W), out
+        See the module's docstring.
+    """
+    H, W = depth.shape
+    nby = gain_px.shape[0]
+    c0, c1, c2 = params[0], params[1], params[2]
+    disp = params[7] > 0.5
+    for ib in prange(nby):
+        by = interleaved(ib, nby)
+        zp = np.empty(W + 2)         # z of the row, padded: zp[u + 1] = z[u]
+        zp[0] = -np.inf
+        zp[W + 1] = -np.inf
+        nbuf = np.empty(8)
+        for v in range(by * b, min(H, by * b + b)):
+            if rowcount[v] == 0:
+                continue
+            for u in range(W):
+                z = depth[v, u] * scale
+                zp[u + 1] = z if (z >= zmin) & (z <= zmax) else np.nan
+            # the depth edges. An edge where the neighbour is invalid (NaN: the comparison fails) or
+            # farther by more than thr.
+            for u in range(W):
+                z = zp[u + 1]
+                zl = zp[u]
+                zr = zp[u + 2]
+                thr = max(jump_rel * z, thr_sig * sigma_model(z, gain_px[by, u], c0, c1, c2, disp))
+                left = not (zl - z <= thr)
+                right = not (zr - z <= thr)
+                # speckle candidates: valid, and neither row neighbour agrees by the relative part
+                near_l = (zl > 0.0) & (abs(zl - z) <= jump_rel * min(zl, z))
+                near_r = (zr > 0.0) & (abs(zr - z) <= jump_rel * min(zr, z))
+                cand = (z > 0.0) & (not (near_l | near_r))
+                flags[v, u] = (LEFT_EDGE if left else 0) | (RIGHT_EDGE if right else 0) | (SPECKLE if cand else 0)
+            # the candidates in full: the noise part of the row neighbours' agreement, then the other six
+            for u in range(W):
+                if flags[v, u] & SPECKLE:
+                    z = zp[u + 1]
+                    g = gain_px[by, u]
+                    md = np.nan
+                    if not (agrees(zp[u], z, g, jump_rel, thr_sig, c0, c1, c2, disp)
+                            or agrees(zp[u + 2], z, g, jump_rel, thr_sig, c0, c1, c2, disp)):
+                        md = _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0, c1, c2,
+                                             disp, nbuf)
+                    if md == md:
+                        speckle_z[v, u] = md
+                    else:
+                        flags[v, u] = flags[v, u] & ~SPECKLE
+
+
+@njit(**JIT)
+def _any_mixed(mixed_px, by):
+    """Whether block row ``by`` has a window of two surfaces."""
+    found = False
+    for u in range(mixed_px.shape[1]):
+        found = found | (mixed_px[by, u] > 0.0)
+    return found
+
+
+@njit(**JIT)
+def _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net):
+    """Median of the agreeing candidates of m pixels at once: column j of buf (n, L) holds pixel j's n
+    candidate depths (NaN: none), zc[j] its depth and gc[j] its angle gain. Candidates that do not agree
+    (:func:`noise_model.kernels.compiled.agrees`) become +inf, each column is sorted, cnt[j] counts the
+    agreeing ones; returns nothing, :func:`noise_model.kernels.compiled.lane_median` reads the median.
+    The loops run over contiguous lanes and vectorise."""
+    for j in range(m):
+        cnt[j] = 0
+    for t in range(n):
+        for j in range(m):
+            zn = buf[t, j]
+            ok = agrees_select(zn, zc[j], gc[j], jump_rel, thr_sig, c0, c1, c2, disp)
+            buf[t, j] = zn if ok else np.inf
+            cnt[j] += 1 if ok else 0
+    sort_lanes_any(buf, m, net)
+
+
+@njit(**JIT)
+def _row_batch(zr, lanes, m, half, v, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, zc, gc, cnt, net,
+               rowmed):
+    """The row medians of the m pixels ``lanes`` of row v (zr: the row's depths, padded by ``half`` NaN on
+    each side) into rowmed[v]: per pixel the median of its 2 half + 1 row neighbours that agree with it."""
+    for j in range(m):
+        u = lanes[j]
+        zc[j] = zr[half + u]
+        gc[j] = gain_px[by, u]
+        for t in range(2 * half + 1):
+            buf[t, j] = zr[u + t]
+    _median_batch(buf, zc, gc, cnt, m, 2 * half + 1, jump_rel, thr_sig, c0, c1, c2, disp, net)
+    for j in range(m):
+        rowmed[v, lanes[j]] = lane_median(buf, j, cnt[j])     # the pixel agrees with itself: cnt >= 1
+
+
+@njit(parallel=True, **JIT)
+def row_median_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, half, net, gain_px, mixed_px, rowmed):
+    """Stage 3b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians) into
+    ``rowmed`` (H, W) [m], NaN for invalid ones; pixels outside mixed windows are neither computed nor
+    written (the next stage reads rowmed only where mixed_px says so), and block rows without any are
+    skipped. ``net``: :func:`noise_model.kernels.compiled.sorting_network` (2 half + 1)."""
+    H, W = depth.shape
+    nby = gain_px.shape[0]
+    nbx = (W + b - 1) // b
+    c0, c1, c2 = params[0], params[1], params[2]
+    disp = params[7] > 0.5
+    for ib in prange(nby):
+        by = interleaved(ib, nby)
+        if not _any_mixed(mixed_px, by):
+            continue
+        zr = np.empty(W + 2 * half)
+        zr[:half] = np.nan
+        zr[W + half:] = np.nan
+        cap = LANES + b                 # a batch runs once LANES are reached, after a whole block
+        lanes = np.empty(cap, dtype=np.int64)
+        cnt = np.empty(cap, dtype=np.int64)
+        zc = np.empty(cap)
+        gc = np.empty(cap)
+        buf = np.empty((2 * half + 1, cap))
+        for v in range(by * b, min(H, by * b + b)):
+            for u in range(W):
+                z = depth[v, u] * scale
+                zr[half + u] = z if (z >= zmin) & (z <= zmax) else np.nan
+            m = 0
+            for bx in range(nbx):           # mixed is per block: whole blocks in or out
+                if not mixed_px[by, bx * b] > 0.0:
+                    continue
+                for u in range(bx * b, min(W, bx * b + b)):
+                    rowmed[v, u] = np.nan   # invalid pixels; the valid ones are written by the batch
+                    lanes[m] = u
+                    m += 1 if zr[half + u] > 0.0 else 0
+                if m >= LANES:
+                    _row_batch(zr, lanes, m, half, v, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, zc, gc,
+                               cnt, net, rowmed)
+                    m = 0
+            if m > 0:
+                _row_batch(zr, lanes, m, half, v, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, zc, gc, cnt,
+                           net, rowmed)
+
+
+@njit(**JIT)
+def _surface_batch(lanes, zc, m, rows_half, v, b, gain_px, mixed_px, rowmed, jump_rel, thr_sig, c0, c1, c2, disp,
+                   buf, gc, cnt, net, surface_z):
+    """The surface medians of the m pixels ``lanes`` (depths zc) of row v into surface_z[v]: the median of
+    the row medians of rows v - rows_half .. v + rows_half of their column that agree with them, read where
+    that row's window is mixed; the pixel's own depth where none agrees."""
+    H = rowmed.shape[0]
+    by = v // b
+    for j in range(m):
+        gc[j] = gain_px[by, lanes[j]]
+    for t in range(2 * rows_half + 1):
+        r = v - rows_half + t
+        if r < 0 or r >= H:
+            for j in range(m):
+                buf[t, j] = np.nan
+            continue
+        rb = r // b
+        for j in range(m):
+            u = lanes[j]
+            buf[t, j] = rowmed[r, u] if mixed_px[rb, u] > 0.0 else np.nan
+    _median_batch(buf, zc, gc, cnt, m, 2 * rows_half + 1, jump_rel, thr_sig, c0, c1, c2, disp, net)
+    for j in range(m):
+        k = cnt[j]
+        surface_z[v, lanes[j]] = lane_median(buf, j, k) if k > 0 else zc[j]
+
+
+@njit(parallel=True, **JIT)
+def surface_median_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, rows_half, net, gain_px, mixed_px,
+                         rowmed, surface_z):
+    """Stage 3c: at each valid pixel of a window of two surfaces, the median of the agreeing row medians of
+    2 rows_half + 1 rows (noise_model.surface_depths) into ``surface_z`` (H, W) [m]; other pixels are not
+    written. ``net``: :func:`noise_model.kernels.compiled.sorting_network` (2 rows_half + 1)."""
+    H, W = depth.shape
+    nby = gain_px.shape[0]
+    nbx = (W + b - 1) // b
+    c0, c1, c2 = params[0], params[1], params[2]
+    disp = params[7] > 0.5
+    for ib in prange(nby):
+        by = interleaved(ib, nby)
+        if not _any_mixed(mixed_px, by):
+            continue
+        cap = LANES + b                 # a batch runs once LANES are reached, after a whole block
+        lanes = np.empty(cap, dtype=np.int64)
+        zc = np.empty(cap)
+        gc = np.empty(cap)
+        cnt = np.empty(cap, dtype=np.int64)
+        buf = np.empty((2 * rows_half + 1, cap))
+        for v in range(by * b, min(H, by * b + b)):
+            m = 0
+            for bx in range(nbx):           # mixed is per block: whole blocks in or out
+                if not mixed_px[by, bx * b] > 0.0:
+                    continue
+                for u in range(bx * b, min(W, bx * b + b)):
+                    z = depth[v, u] * scale
+                    lanes[m] = u
+                    zc[m] = z
+                    m += 1 if (z >= zmin) & (z <= zmax) else 0
+                if m >= LANES:
+                    _surface_batch(lanes, zc, m, rows_half, v, b, gain_px, mixed_px, rowmed, jump_rel, thr_sig, c0, c1,
+                                   c2, disp, buf, gc, cnt, net, surface_z)
+                    m = 0
+            if m > 0:
+                _surface_batch(lanes, zc, m, rows_half, v, b, gain_px, mixed_px, rowmed, jump_rel, thr_sig, c0, c1,
+                               c2, disp, buf, gc, cnt, net, surface_z)

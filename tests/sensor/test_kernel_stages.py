@@ -1,0 +1,67 @@
+"""The stages of the depth -> map-points kernel: the sorting networks of its medians, and the stages run one
+by one (as ``elevmap bench`` times them) against the whole kernel."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from conftest import random_pose_cov, random_transform
+from noise_model import D435, Workspace, depth_to_map_points
+from noise_model.kernels import STAGES, depth_to_map_points_by_stage
+from noise_model.kernels.compiled import lane_median, rank_median, sort_lanes, sort_lanes_any, sorting_network
+from test_kernels import hostile_depth
+
+
+@pytest.mark.parametrize("n", range(1, 14))
+def test_sorting_network_sorts_every_zero_one_input(n):
+    # the 0-1 principle: a network of compare-exchanges that sorts every 0/1 input sorts every input
+    net = sorting_network(n)
+    assert np.all(net[:, 0] < net[:, 1]) and np.all(net < n)
+    cases = np.array(list(itertools.product((0.0, 1.0), repeat=n))).T.copy()       # (n, 2^n): one per column
+    sort_lanes(cases, cases.shape[1], net)
+    assert np.all(np.diff(cases, axis=0) >= 0)
+
+
+@pytest.mark.parametrize("n", [5, 11, 7])
+def test_the_written_out_networks_sort_as_the_generic_one_and_give_the_rank_median(n):
+    rng = np.random.default_rng(n)
+    m = 300
+    vals = np.round(rng.uniform(0.5, 3.0, (n, m)), 2)                # ties on purpose
+    k = rng.integers(1, n + 1, m)                                    # how many take part per column
+    vals[np.arange(n)[:, None] >= k] = np.inf                        # the others: +inf
+    a, b = vals.copy(), vals.copy()
+    sort_lanes_any(a, m - 3, sorting_network(n))                     # the last columns stay as they were
+    sort_lanes(b, m - 3, sorting_network(n))
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a[:, m - 3:], vals[:, m - 3:])
+    for j in range(m - 3):
+        assert lane_median(a, j, k[j]) == rank_median(vals[:k[j], j].copy(), k[j]) == np.median(vals[:k[j], j])
+
+
+@pytest.mark.parametrize("nthreads", [1, 2])
+def test_stages_one_by_one_equal_the_kernel_bit_for_bit(nthreads):
+    rng = np.random.default_rng(4)
+    d, s = hostile_depth(rng, 240, 424, np.uint16)
+    K, T, P = D435.intrinsics(424, 240), random_transform(rng), random_pose_cov(rng)
+    whole = depth_to_map_points(d, K, T, P, depth_scale=s, nthreads=nthreads)
+    ws = Workspace(240, 424)
+    staged, seconds = depth_to_map_points_by_stage(d, K, T, P, depth_scale=s, nthreads=nthreads, workspace=ws)
+    for x, y in zip(whole, staged):
+        np.testing.assert_array_equal(x, y)
+    assert tuple(seconds) == STAGES and all(t >= 0.0 for t in seconds.values())
+    assert np.shares_memory(staged.points_map, ws.points_map)
+    with pytest.raises(ValueError, match="workspace must be a Workspace"):
+        depth_to_map_points_by_stage(d, K, T, P, depth_scale=s, workspace=Workspace(10, 10))
+
+
+def test_a_workspace_serves_frames_of_different_block_sizes():
+    rng = np.random.default_rng(8)
+    d, s = hostile_depth(rng, 60, 80, np.uint16)
+    K = np.array([[60.0, 0, 40], [0, 60.0, 30], [0, 0, 1]])
+    ws = Workspace(60, 80)
+    for b in (3, 5, 3):
+        a = depth_to_map_points(d, K, np.eye(4), depth_scale=s, block_px=b, workspace=ws)
+        fresh = depth_to_map_points(d, K, np.eye(4), depth_scale=s, block_px=b)
+        for x, y in zip(a, fresh):
+            np.testing.assert_array_equal(x, y)
