@@ -18,6 +18,7 @@ import numba
 import numpy as np
 
 import noise_model as nm
+from noise_model.kernels import STAGES, depth_to_map_points_by_stage
 from noise_model.numba_config import resolve_threads
 from noise_model.sim import (
     DEFAULT_T_BASE_CAM, Scene, camera_extrinsics, render_depth, render_depth_reference, render_floor,
@@ -28,6 +29,7 @@ from ..map import fusion, queries
 from ..map.elevation_map import ElevationMap
 from ..map.floor import FloorWorkspace, fuse_floor, fuse_floor_reference
 from ..mapper import Camera, Mapper
+from .bench_run import RUN_ROUNDS, bench_run, run_lines
 
 __all__ = ["bench_scene", "floor_scene", "update_scene", "run_bench", "format_table", "GROUPS", "STEREO_TARGET_MS"]
 
@@ -62,10 +64,12 @@ def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
     return 1e3 * float(np.median(times))
 
 
-GROUPS = ("noise", "mapper", "update", "move_to", "height_scan", "first_frame", "render", "stereo", "ros")
+GROUPS = ("noise", "mapper", "update", "move_to", "height_scan", "first_frame", "render", "stereo", "ros", "run")
 MAPPER_SIZES = ((1280, 720), (848, 480), (424, 240))
 #: Sizes of the ``update`` and ``floor`` records (points per frame: every pixel of the image).
 UPDATE_SIZES = ((848, 480), (424, 240))
+#: Frames of the ``run`` records' recording (848x480 at 30 Hz), at most (``--frames`` when fewer, at least 10).
+RUN_FRAMES = 90
 #: The physical D435's time budget per frame [ms] at each size (width, height) on a 2-core machine.
 STEREO_TARGET_MS = {(424, 240): 150.0, (848, 480): 600.0}
 #: Timed frames of the physical D435 per size, at most (a frame takes a tenth of a second or more).
@@ -125,9 +129,18 @@ def _bench_noise(frames, reference_frames, n, bar):
         npts = len(nm.depth_to_map_points(d, K, T, P, depth_scale=scale, workspace=ws, nthreads=n).pixel)
         fast = _median_ms(lambda: nm.depth_to_map_points(d, K, T, P, depth_scale=scale, workspace=ws,
                                                          nthreads=n), frames, 5, bar)
+        seconds = {stage: [] for stage in STAGES}
+
+        def staged():          # the same kernels launched one at a time, each stage timed alone
+            for stage, sec in depth_to_map_points_by_stage(d, K, T, P, depth_scale=scale, workspace=ws,
+                                                           nthreads=n)[1].items():
+                seconds[stage].append(sec)
+
+        _median_ms(staged, frames, 2, bar)
+        stages = {stage: round(1e3 * float(np.median(sec[2:])), 4) for stage, sec in seconds.items()}
         ref = _median_ms(lambda: nm.depth_to_map_points_reference(d, K, T, P, depth_scale=scale),
                          reference_frames, 1, bar)
-        out.append(_record("noise", width, height, "numba", fast, npts, frames, n))
+        out.append(_record("noise", width, height, "numba", fast, npts, frames, n, stages=stages))
         out.append(_record("noise", width, height, "numpy", ref, npts, reference_frames, 1))
     return out
 
@@ -377,7 +390,9 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     -------
     dict
         ``{"results": [{"name", "width", "height", "impl", "median_ms", "points_per_s", "frames",
-        "threads", ...}, ...], "machine": {...}}``; ``first_frame_*`` records carry ``seconds``, ``stereo``
+        "threads", ...}, ...], "machine": {...}}``; the ``noise`` numba records carry ``stages`` [ms], each stage of
+        :data:`noise_model.kernels.STAGES` timed alone; ``run``/``run_rrd`` records ``frames_per_s`` end to end and
+        ``split_ms`` (:mod:`elevmap.commands.bench_run`); ``first_frame_*`` records carry ``seconds``, ``stereo``
         records ``target_ms``, ``render_ms`` and ``noise_and_match_ms`` (points: its valid pixels).
     """
     from tqdm import tqdm
@@ -388,11 +403,11 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
         raise ValueError(f"unknown bench group(s) {sorted(unknown)}; choose from {', '.join(GROUPS)}")
     n = resolve_threads(nthreads)
     map_ref = min(reference_frames, 3)
-    total = (("noise" in groups) * len(SIZES) * (frames + reference_frames)
+    total = (("noise" in groups) * len(SIZES) * (2 * frames + reference_frames)
              + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
              + ("update" in groups) * len(UPDATE_SIZES) * (6 * frames + 2 * reference_frames)
              + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
-             + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1)
+             + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1) + ("run" in groups) * 2 * RUN_ROUNDS
              + ("stereo" in groups) * len(STEREO_TARGET_MS) * min(frames, STEREO_MAX_FRAMES)
              + ("ros" in groups) * 4 * frames)
     results = []
@@ -415,6 +430,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
             results += _bench_stereo(frames, n, bar)
         if "ros" in groups:
             results += _bench_ros(frames, n, bar)
+        if "run" in groups:
+            results += bench_run(max(10, min(frames, RUN_FRAMES)), n, bar)
     return {"results": results, "machine": machine_info(n)}
 
 
@@ -457,10 +474,16 @@ def format_table(report: dict) -> str:
         pps = "" if r.get("points_per_s") is None else f"{r['points_per_s'] / 1e6:.2f}"
         lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{r['median_ms']:>11.3f}{pps:>11}{speed:>10}")
     for r in rows:
+        if r["name"] == "noise" and r["impl"] == "numba" and "stages" in r:
+            st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
+            lines.append(f"noise {r['width']}x{r['height']}: stages alone [ms]: {st} (sum "
+                         f"{sum(r['stages'].values()):.2f})")
+    for r in rows:
         if r["name"] == "update" and r["impl"] == "numba":
             st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
             lines.append(f"update {r['width']}x{r['height']}: {r['floor_ratio']:.1f}x the floor; with clean-up "
                          f"{r['cleanup_ms']:.2f} ms; stages alone [ms]: {st}")
+    lines += run_lines(rows)
     if any(r["name"] == "stereo" for r in rows):
         lines.append("stereo: the physical D435, one frame (render, sensor noise, matching); "
                      "last column: its budget [ms]")
