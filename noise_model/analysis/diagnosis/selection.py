@@ -41,8 +41,8 @@ class SelectionConfig:
         by more than the 95th percentile of the real-vs-real aggregate gaps of the held-out captures
         (a shrink two halves of the real data could show against each other is no shrink). Relative
         to what is left, not to the baseline: once a first effect has removed most of a gap that the
-        reference model gets 100 times wrong, the next effect's share of the baseline is small
-        however real it is, while its share of what is left is what a user gains by adding it.
+        reference model gets wrong by orders of magnitude, the next effect's share of the baseline is
+        small however real it is, while its share of what is left is what a user gains by adding it.
     max_effects : int
         At most this many effects are selected (the library holds 12; the selection normally stops
         earlier, when no candidate passes the held-out test or the gap left is within the floor).
