@@ -149,10 +149,25 @@ def _simulator(nthreads: int) -> None:
 
 
 def _stereo(nthreads: int) -> None:
+    """A walk frame with each matcher preset, and a board before a wall as ``simulate --grid --sensor stereo``
+    makes it (the board's textured materials)."""
+    from noise_model.d435 import D435
+    from noise_model.sim import CaptureGeometry, simulate_target_stereo
+    from noise_model.sim.stereo import PRESETS, StereoD435
+
     from ..sources.simulated import SimulatedWalk
 
-    for _ in SimulatedWalk("demo", n_frames=1, width=424, height=240, sensor="stereo"):
-        pass
+    for preset in sorted(PRESETS):
+        for _ in SimulatedWalk("demo", n_frames=1, width=424, height=240, sensor="stereo", preset=preset):
+            pass
+    K = D435.intrinsics(424, 240)
+    camera = {"width": 424, "height": 240, "fx": float(K[0, 0]), "fy": float(K[1, 1]), "ppx": float(K[0, 2]),
+              "ppy": float(K[1, 2]), "depth_scale": 0.001, "baseline_m": D435.baseline_m}
+    entry = {"id": "warmup", "background_m": 3.0, "target": {"kind": "board", "distance_m": 1.0, "yaw_deg": 30.0,
+                                                             "pitch_deg": 0.0, "width_m": 0.6, "height_m": 0.9}}
+    geometry = CaptureGeometry.from_capture_set_entry(camera, entry)
+    simulate_target_stereo(geometry, 1, np.random.default_rng(0),
+                           camera=StereoD435(424, 240, K=K, baseline_m=D435.baseline_m, nthreads=nthreads))
 
 
 def warmup_steps(groups=WARMUP_GROUPS) -> list[WarmupStep]:
