@@ -30,6 +30,10 @@ RIGHT_EDGE = 2
 #: flags: no neighbour agrees with the pixel; its depth is speckle_z.
 SPECKLE = 4
 
+#: 1 - margin on a lower bound of sigma_z computed in floating point (a few roundings of 1e-16 each), so that
+#: the bound never certifies an agreement the exact test would refuse.
+BOUND_MARGIN = 1.0 - 1e-12
+
 #: Pixels whose medians are sorted together, one per SIMD lane (their values fit in L1).
 LANES = 128
 
@@ -85,6 +89,7 @@ def edges_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, gain_px,
     nby = gain_px.shape[0]
     c0, c1, c2 = params[0], params[1], params[2]
     disp = params[7] > 0.5
+    grows_z2 = (c0 >= 0.0) & (c1 >= 0.0) & (c2 >= 0.0) & (params[3] >= 0.0)    # and the gain g >= 0
     for ib in prange(nby):
         by = interleaved(ib, nby)
         zp = np.empty(W + 2)         # z of the row, padded: zp[u + 1] = z[u]
@@ -103,12 +108,23 @@ def edges_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, gain_px,
                 z = zp[u + 1]
                 zl = zp[u]
                 zr = zp[u + 2]
-                thr = max(jump_rel * z, thr_sig * sigma_model(z, gain_px[by, u], c0, c1, c2, disp))
+                s = sigma_model(z, gain_px[by, u], c0, c1, c2, disp)
+                thr = max(jump_rel * z, thr_sig * s)
                 left = not (zl - z <= thr)
                 right = not (zr - z <= thr)
-                # speckle candidates: valid, and neither row neighbour agrees by the relative part
-                near_l = (zl > 0.0) & (abs(zl - z) <= jump_rel * min(zl, z))
-                near_r = (zr > 0.0) & (abs(zr - z) <= jump_rel * min(zr, z))
+                # speckle candidates: valid, and no row neighbour agrees for certain here: by the relative
+                # part at the nearer depth; where the neighbour is the farther one (the nearer depth is z) by
+                # thr itself (agrees() at the same depth and gain); where it is the nearer one, zn < z, by a
+                # lower bound of its sigma_z: sigma_z(zn) >= sigma_z(z) (zn / z)^2 when no coefficient is
+                # negative (each term grows at most as z^2), compared without a division and with a margin
+                # for rounding. The candidates left are tested in full below.
+                dl = abs(zl - z)
+                dr = abs(zr - z)
+                bl = thr_sig * s * BOUND_MARGIN
+                near_l = (zl > 0.0) & ((dl <= jump_rel * min(zl, z)) | ((zl >= z) & (dl <= thr))
+                                       | (grows_z2 & (zl < z) & (dl * z * z <= bl * zl * zl)))
+                near_r = (zr > 0.0) & ((dr <= jump_rel * min(zr, z)) | ((zr >= z) & (dr <= thr))
+                                       | (grows_z2 & (zr < z) & (dr * z * z <= bl * zr * zr)))
                 cand = (z > 0.0) & (not (near_l | near_r))
                 flags[v, u] = (LEFT_EDGE if left else 0) | (RIGHT_EDGE if right else 0) | (SPECKLE if cand else 0)
             # the candidates in full: the noise part of the row neighbours' agreement, then the other six

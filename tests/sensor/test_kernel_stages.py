@@ -65,3 +65,20 @@ def test_a_workspace_serves_frames_of_different_block_sizes():
         fresh = depth_to_map_points(d, K, np.eye(4), depth_scale=s, block_px=b)
         for x, y in zip(a, fresh):
             np.testing.assert_array_equal(x, y)
+
+
+@pytest.mark.parametrize("c1", [0.0007278, -0.0004])
+def test_speckles_equal_the_reference_whether_or_not_sigma_grows_at_most_as_z_squared(c1):
+    # the edges stage settles most pixels with a lower bound of a nearer neighbour's sigma_z that holds when
+    # no coefficient is negative; with a negative one it tests them in full
+    from noise_model import depth_to_map_points_reference
+    rng = np.random.default_rng(12)
+    d, s = hostile_depth(rng, 97, 131, np.uint16)
+    K = D435.intrinsics(848, 480) * np.array([[131 / 848], [97 / 480], [1.0]])
+    c = D435.axial_coefficients
+    model = D435.with_coefficients((c[0], c1, c[2], c[3]))
+    T = random_transform(rng)
+    a = depth_to_map_points(d, K, T, depth_scale=s, model=model)
+    b = depth_to_map_points_reference(d, K, T, depth_scale=s, model=model)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6 * float(np.abs(y).max(initial=1.0)))
