@@ -84,7 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="with --rrd/--spawn: log the points, trail, map plots and meshes at most HZ times per "
                             "second of the source's time (default 10; every frame's depth and pose are logged)")
         p.add_argument("--png-depth", action="store_true",
-                       help="with --rrd: log uint16 depth PNG-compressed (smaller; about 25 ms per 848x480 frame)")
+                       help="with --rrd: log uint16 depth PNG-compressed (smaller files, but too slow to encode for "
+                            "848x480 at 30 frames/s)")
         if name == "run":
             _ros_options(p)
             p.add_argument("--bag-out", metavar="PATH",

@@ -55,9 +55,10 @@ class MappingConfig:
     max_points, max_ellipsoids : int
         Sub-sampled points and covariance ellipsoids logged per view.
     png_depth : bool
-        Log uint16 depth losslessly PNG-compressed: about 0.7 of the raw size on noisy depth, a tenth on
-        smooth depth, but the encoding takes about 25 ms per 848x480 frame, more than the mapping itself;
-        raw depth (the default) costs about 2 ms. Both replay bit-exact.
+        Log uint16 depth losslessly PNG-compressed: smaller files (a little on noisy depth, much on smooth
+        depth), but zlib encoding on the mapping thread costs more per 848x480 frame than the mapper itself,
+        while raw depth (the default) is one copy that rerun compresses with LZ4 on its own thread. Both
+        replay bit-exact.
     sensor_model : str
         A sensor model file (``elevmap-sensor-model/1`` or ``/2``, as ``elevmap characterize`` writes
         it) for every camera of the run; "" = the paper's D435.
