@@ -83,29 +83,19 @@ def points_stage(depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, param
         cu = np.empty(W, dtype=np.int64)
         cz = np.empty(W)
         cf = np.empty(W, dtype=np.uint8)
-        cmed = np.empty(W)
-        crow = np.empty(W)
         for v in range(by * b, min(H, by * b + b)):
             if offsets[v + 1] == offsets[v]:
                 continue
-            # (a) compaction of the valid pixels: every pixel is stored, the count advances only on valid
-            # ones (stage 1's validity test, so k ends at the row's valid count and each row fills exactly
-            # its own output range); a speckle's replaced depth and the surface median where they exist
+            # (a) compaction of the valid pixels (column, depth, flags): every pixel is stored, the count
+            # advances only on valid ones (stage 1's validity test, so k ends at the row's valid count and
+            # each row fills exactly its own output range)
             k = 0
             for u in range(W):
                 z = depth[v, u] * scale
                 f = flags[v, u]
-                md = nan
-                if f & SPECKLE:
-                    md = speckle_z[v, u]
-                rm = nan
-                if mixed_px[by, u] > 0.0:
-                    rm = surface_z[v, u]
                 cu[k] = u
                 cz[k] = z
                 cf[k] = f
-                cmed[k] = md
-                crow[k] = rm
                 k += 1 if (z >= zmin) & (z <= zmax) else 0
 
             # (b) the arithmetic over the compacted pixels. Unsigned output index: no wraparound select, so
@@ -120,12 +110,12 @@ def points_stage(depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, param
                 u = cu[j]
                 z = cz[j]
                 f = cf[j]
-                # a speckle (median not NaN): its depth is its neighbours' median, and it is as uncertain
-                # as its distance from them (selects, so that the loop still vectorises)
-                md = cmed[j]
-                sp = md == md
-                dev2 = (z - md) * (z - md) if sp else 0.0
-                z = md if sp else z
+                # a speckle: its depth is its neighbours' median, and it is as uncertain as its distance from
+                # them (selects, so that the loop still vectorises)
+                sp = (f & SPECKLE) != 0
+                md = speckle_z[v, u] if sp else z
+                dev2 = (z - md) * (z - md)
+                z = md
                 zz = z * z
                 # lateral x variance: sigma_L^2 / sigma_R^2 on edges, else the pixel footprint
                 left = (f & LEFT_EDGE) != 0
@@ -149,7 +139,7 @@ def points_stage(depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, param
                 # in a window of two surfaces the model's sigma is the fit's across both (its angle,
                 # its plane): the pixel's distance from its own surface's median is a floor, as a
                 # speckle's from its neighbours (a speckle: its replaced depth, so 0; NaN: not mixed)
-                zr = z if sp else crow[j]
+                zr = z if sp else (surface_z[v, u] if mixed_px[by, u] > 0.0 else nan)
                 dr = z - zr
                 s2 = max(s2, dr * dr) if dr == dr else s2
                 ru = up[u]
