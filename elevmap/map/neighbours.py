@@ -20,8 +20,9 @@ refined to the Paule-Mandel estimator, the root of the generalised Q statistic
 
     Q(tau^2) = sum w_j (h_j - m)^2 = k - 1,   w_j = 1 / (P_j + tau^2),   m = sum w_j h_j / sum w_j,
 
-solved by safeguarded Newton steps on 1 / Q (linear in tau^2 when the P_j are equal) from the cell's
-last root (a warm start) or the DerSimonian-Laird value (Q decreases in tau^2; dQ/dtau^2 =
+solved by safeguarded Newton steps on 1 / Q (linear in tau^2 when the P_j are equal; a step below
+``PM_STEP_TOL`` of tau^2 is the last) from the cell's last root (a warm start) or the DerSimonian-Laird
+value (Q decreases in tau^2; dQ/dtau^2 =
 -sum w_j^2 (h_j - m)^2), where Q(0) > k - 1 (elsewhere both are 0); with equal P the two coincide.
 Why: a D435 map's P span four decades (near cells (1 mm)^2, far cells centimetres), and
 DerSimonian-Laird's weights are then the precise cells': in a window of a floor and a box top it sees
@@ -65,6 +66,10 @@ __all__ = ["update_neighbour_spread", "update_neighbour_spread_reference", "fuse
 PM_TOL = 1e-10
 #: At most this many evaluations of Q per cell.
 PM_MAX_STEPS = 100
+#: Paule-Mandel convergence by the step: a Newton step below PM_STEP_TOL tau^2 is taken and is the last
+#: (Newton's error after a step is of the order of the step's square: ~1e-10 of tau^2 here), so that a
+#: warm start one small step from the root costs one evaluation of Q instead of two.
+PM_STEP_TOL = 1e-5
 #: The estimators of the neighbourhood spread (``FusionParams.neighbour_estimator``).
 ESTIMATORS = ("paule_mandel", "dersimonian_laird")
 
@@ -129,8 +134,8 @@ def _paule_mandel(y, p, k, t0, w):
     1 / Q(t) = 1 / (k - 1), which is linear in t when the p are equal (one step then;
     t += Q (Q - (k - 1)) / ((k - 1) D)), kept inside a bracket [lo, hi] that it bisects when a step
     leaves it. Q decreases in t; the caller ensures Q(0) > k - 1, so the root is positive. Converged
-    when |Q - (k - 1)| <= PM_TOL (k - 1) or the bracket is below 1e-12 of t (at most PM_MAX_STEPS
-    evaluations)."""
+    when |Q - (k - 1)| <= PM_TOL (k - 1), the bracket is below 1e-12 of t, or after a Newton step
+    (inside the bracket) below PM_STEP_TOL t, which is taken (at most PM_MAX_STEPS evaluations)."""
     lo = 0.0
     hi = np.inf
     t = t0
@@ -149,6 +154,8 @@ def _paule_mandel(y, p, k, t0, w):
         tn = t + qq * f / (km1 * dd) if dd > 0.0 else np.inf
         if not (tn > lo and tn < hi):
             tn = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
+        elif abs(tn - t) <= PM_STEP_TOL * t:
+            return tn                         # a converged Newton step
         t = tn
     return t
 
@@ -364,10 +371,11 @@ def _paule_mandel_reference(y, p, cells, r, t0):
         with np.errstate(divide="ignore", invalid="ignore"):
             tn = np.where(dd > 0, ti + qq * f / (km1[idx] * dd), np.inf)
         bad = ~((tn > lo_i) & (tn < hi_i))
+        small = ~done & ~bad & (np.abs(tn - ti) <= PM_STEP_TOL * ti)      # a converged Newton step: taken, last
         tn = np.where(bad, np.where(np.isfinite(hi_i), 0.5 * (lo_i + hi_i), 2.0 * ti), tn)
         lo[idx], hi[idx] = lo_i, hi_i
         t[idx] = np.where(done, ti, tn)
-        active[idx] = ~done
+        active[idx] = ~(done | small)
     return t
 
 
