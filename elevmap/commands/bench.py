@@ -154,15 +154,21 @@ def _bench_mapper(frames, reference_frames, n, bar):
                 mapper = Mapper(ElevationMap(8.0, 0.04, visibility_cleanup=cleanup, nthreads=n),
                                 [Camera("d435", K, width, height)], nthreads=n)
                 k = [0]
+                split = {"noise_ms": [], "fusion_ms": []}
 
                 def frame():
                     k[0] += 1
-                    return mapper.integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=0.033 * k[0], impl=impl)
+                    stats = mapper.integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=0.033 * k[0], impl=impl)
+                    for key, values in split.items():
+                        values.append(stats[key])
+                    return stats
 
                 npts = frame()["points"]
                 ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
+                # the frame's split: the noise model, and the map (fusion, clean-up, neighbourhood spread)
+                parts = {key: round(float(np.median(values[-nf:])), 4) for key, values in split.items()}
                 out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
-                                   map_cells=mapper.map.n ** 2, resolution_m=0.04))
+                                   map_cells=mapper.map.n ** 2, resolution_m=0.04, **parts))
     return out
 
 
@@ -479,6 +485,9 @@ def format_table(report: dict) -> str:
             lines.append(f"noise {r['width']}x{r['height']}: stages alone [ms]: {st} (sum "
                          f"{sum(r['stages'].values()):.2f})")
     for r in rows:
+        if r["name"].startswith("mapper") and r["impl"] == "numba" and "fusion_ms" in r:
+            lines.append(f"{r['name']} {r['width']}x{r['height']}: noise model {r['noise_ms']:.2f} ms, map "
+                         f"{r['fusion_ms']:.2f} ms")
         if r["name"] == "update" and r["impl"] == "numba":
             st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
             lines.append(f"update {r['width']}x{r['height']}: {r['floor_ratio']:.1f}x the floor; with clean-up "
