@@ -116,7 +116,9 @@ def plane_from_inverse_depth_moments(S, min_points, degenerate_rel):
     alpha = (cvv * cuw - cuv * cvw) / det
     beta = (cuu * cvw - cuv * cuw) / det
     gamma = mw - alpha * mu - beta * mv
-    return math.atan2(math.hypot(alpha, beta), abs(gamma)), alpha, beta, gamma, True
+    # |(alpha, beta)| as a square root, not hypot: an inverse-depth plane's slopes [1/m] are far from
+    # overflow, and libm's careful hypot cost a sixth of this stage (NumPy's reference: within an ulp)
+    return math.atan2(math.sqrt(alpha * alpha + beta * beta), abs(gamma)), alpha, beta, gamma, True
 
 
 @njit(**JIT)
@@ -137,7 +139,7 @@ def theta_std_from_moments(S, alpha, beta, gamma):
     vgg = res / (n - 3.0) + mu * mu * vaa + 2.0 * mu * mv * vab + mv * mv * vbb
     vag = -(mu * vaa + mv * vab)
     vbg = -(mu * vab + mv * vbb)
-    rho = math.hypot(alpha, beta)
+    rho = math.sqrt(alpha * alpha + beta * beta)       # as in plane_from_inverse_depth_moments
     q = rho * rho + gamma * gamma
     if not q > 0.0:
         return 0.0
