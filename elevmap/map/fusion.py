@@ -100,7 +100,8 @@ PARTIALS = 8
 NACC = 22
 
 #: Settings that earlier versions had and that no longer exist, with why: a config file or a saved map
-#: naming one is read with a ``DeprecationWarning`` (a value of the wrong type is still an error).
+#: naming one is read with a ``FutureWarning`` (which Python shows to the command line's users, unlike a
+#: ``DeprecationWarning``) and the setting is ignored; a value of the wrong type is still an error.
 REMOVED_PARAMS = {
     "scatter_inflation": "dividing a frame's information in a cell by the reduced chi-square of its points changed "
                          "no score on the paper's reference nor on the physical D435: the spreads cover what it "
@@ -163,7 +164,7 @@ class FusionParams:
         neighbouring level as often as not. 3 by default; 1 reports every fused cell.
     scatter_inflation : bool, optional
         Removed (:data:`REMOVED_PARAMS`): accepted for old config files and saved maps, with a
-        ``DeprecationWarning``, and ignored.
+        ``FutureWarning``, and ignored.
     """
 
     mahalanobis_threshold: float = 2.5
@@ -184,7 +185,7 @@ class FusionParams:
         if scatter_inflation is not None:
             check_bool(scatter_inflation, "scatter_inflation")
             warnings.warn("FusionParams: scatter_inflation was removed and is ignored "
-                          f"({REMOVED_PARAMS['scatter_inflation']})", DeprecationWarning, stacklevel=3)
+                          f"({REMOVED_PARAMS['scatter_inflation']})", FutureWarning, stacklevel=3)
         for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
             check_real(getattr(self, name), name, 0.0, lo_open=True)
         if self.min_variance >= self.max_variance:

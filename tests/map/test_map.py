@@ -354,7 +354,7 @@ def test_points_that_scatter_beyond_their_noise_do_not_make_a_cell_confident(rng
 
 def test_removed_scatter_inflation_is_read_with_a_deprecation_warning(tmp_path):
     # an old config or saved map may name it: ignored with a warning; a value of the wrong type is an error
-    with pytest.warns(DeprecationWarning, match="scatter_inflation was removed"):
+    with pytest.warns(FutureWarning, match="scatter_inflation was removed"):
         p = FusionParams(scatter_inflation=True)
     assert p == FusionParams() and "scatter_inflation" not in dataclasses.asdict(p)
     with pytest.raises(ValueError, match="scatter_inflation must be true or false"):
@@ -368,7 +368,7 @@ def test_removed_scatter_inflation_is_read_with_a_deprecation_warning(tmp_path):
     assert "scatter_inflation" not in params
     arrays["fusion_params"] = np.array(json.dumps({**params, "scatter_inflation": True}))
     np.savez(tmp_path / "old.npz", **arrays)
-    with pytest.warns(DeprecationWarning, match="scatter_inflation"):
+    with pytest.warns(FutureWarning, match="scatter_inflation"):
         old = ElevationMap.load(tmp_path / "old.npz")
     np.testing.assert_array_equal(old.data, m.data)
 
