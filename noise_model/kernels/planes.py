@@ -224,7 +224,8 @@ def planes_stage(M, b, W, radius, min_points, degenerate_rel, mix_z, params, hx,
     alpha_px, beta_px, gamma_px : ndarray, shape (nby, W), out
         The window's plane w = alpha u' + beta v' + gamma [1/m]; gamma NaN: no plane.
     mixed_px : ndarray, shape (nby, W), out
-        1.0 where the window holds more than one surface (or has no plane), else 0.0.
+        1.0 where the window holds more than one surface (or has no plane), else 0.0; 0.0 for blocks
+        without valid pixels.
 
     The window sum is separable: over the block rows first (Vs), then over the block columns. A block
     without valid pixels needs no plane.
@@ -245,7 +246,7 @@ def planes_stage(M, b, W, radius, min_points, degenerate_rel, mix_z, params, hx,
             eg2 = 0.0
             pa = pb = 0.0
             pg = np.nan
-            mixed = True
+            mixed = False           # a block without valid pixels has nothing to denoise (the medians skip it)
             if M[by, bx, 0] > 0.0:
                 S[:] = 0.0
                 for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):

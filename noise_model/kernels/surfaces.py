@@ -171,32 +171,80 @@ def _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, n
 
 
 @njit(**JIT)
-def _row_batch(zr, lanes, m, half, v, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, zc, gc, cnt, net,
-               rowmed):
-    """The row medians of the m pixels ``lanes`` of row v (zr: the row's depths, padded by ``half`` NaN on
-    each side) into rowmed[v]: per pixel the median of its 2 half + 1 row neighbours that agree with it."""
-    for j in range(m):
-        u = lanes[j]
-        zc[j] = zr[half + u]
-        gc[j] = gain_px[by, u]
-        for t in range(2 * half + 1):
-            buf[t, j] = zr[u + t]
-    _median_batch(buf, zc, gc, cnt, m, 2 * half + 1, jump_rel, thr_sig, c0, c1, c2, disp, net)
-    for j in range(m):
-        rowmed[v, lanes[j]] = lane_median(buf, j, cnt[j])     # the pixel agrees with itself: cnt >= 1
+def _mixed_segment(mixed_px, by, bx, nbx, b, W):
+    """(u0, u1, bx1): the pixel columns u0 .. u1 - 1 of the run of blocks of two surfaces in block row ``by``
+    that starts at block column ``bx`` (mixed), and the block column after it."""
+    bx1 = bx + 1
+    while bx1 < nbx and mixed_px[by, bx1 * b] > 0.0:
+        bx1 += 1
+    return bx * b, min(W, bx1 * b), bx1
+
+
+@njit(**JIT)
+def _row_copy(zr, u0, m0, m, half, by, gain_px, buf, zc, gc):
+    """Pixels u0 .. u0 + m - 1 of a row (zr: its depths, NaN where invalid, padded by ``half`` NaN on each
+    side) into lanes m0 .. m0 + m - 1 of a batch: their depths, gains and 2 half + 1 row neighbours.
+    Contiguous pixels, unsigned offsets: the copies vectorise."""
+    s = np.uint64(u0)
+    d = np.uint64(m0)
+    for j in range(np.uint64(m)):
+        zc[d + j] = zr[np.uint64(half) + s + j]
+        gc[d + j] = gain_px[by, s + j]
+    for t in range(np.uint64(2 * half + 1)):
+        for j in range(np.uint64(m)):
+            buf[t, d + j] = zr[s + j + t]
+
+
+@njit(**JIT)
+def _surface_copy(depth, scale, zmin, zmax, u0, m0, m, rows_half, v, b, gain_px, mixed_px, rowmed, buf, zc, gc):
+    """Pixels u0 .. u0 + m - 1 of row v into lanes m0 .. m0 + m - 1 of a batch: their depths (NaN where
+    invalid), gains, and the row medians of rows v - rows_half .. v + rows_half of their columns where that
+    row's window is mixed (NaN elsewhere and beyond the image)."""
+    H = rowmed.shape[0]
+    by = v // b
+    s = np.uint64(u0)
+    d = np.uint64(m0)
+    for j in range(np.uint64(m)):
+        z = depth[v, s + j] * scale
+        zc[d + j] = z if (z >= zmin) & (z <= zmax) else np.nan
+        gc[d + j] = gain_px[by, s + j]
+    for t in range(2 * rows_half + 1):
+        r = v - rows_half + t
+        if r < 0 or r >= H:
+            for j in range(np.uint64(m)):
+                buf[t, d + j] = np.nan
+            continue
+        rb = r // b
+        for j in range(np.uint64(m)):
+            buf[t, d + j] = rowmed[r, s + j] if mixed_px[rb, s + j] > 0.0 else np.nan
+
+
+@njit(**JIT)
+def _write_medians(buf, zc, cnt, seg_u0, seg_m0, seg_n, ns, v, fallback_own, out):
+    """out[v, u] for the lanes of the batch's ns segments (pixel seg_u0 + j is lane seg_m0 + j): the median of
+    the agreeing values, and where none agrees the pixel's own depth (``fallback_own``) or NaN."""
+    for q in range(ns):
+        for j in range(seg_n[q]):
+            lane = seg_m0[q] + j
+            k = cnt[lane]
+            none = zc[lane] if fallback_own else np.nan
+            out[v, seg_u0[q] + j] = lane_median(buf, lane, k) if k > 0 else none
 
 
 @njit(parallel=True, **JIT)
 def row_median_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, half, net, gain_px, mixed_px, rowmed):
     """Stage 3b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians) into
-    ``rowmed`` (H, W) [m], NaN for invalid ones; pixels outside mixed windows are neither computed nor
-    written (the next stage reads rowmed only where mixed_px says so), and block rows without any are
-    skipped. ``net``: :func:`noise_model.kernels.compiled.sorting_network` (2 half + 1)."""
+    ``rowmed`` (H, W) [m], NaN for invalid ones (no neighbour agrees with NaN); pixels outside mixed windows
+    are neither computed nor written (the next stage reads rowmed only where mixed_px says so), and block
+    rows without any are skipped. Mixed windows come in whole blocks: the runs of contiguous mixed blocks of
+    a row are copied into batches of at most :data:`LANES` pixels. ``net``:
+    :func:`noise_model.kernels.compiled.sorting_network` (2 half + 1)."""
     H, W = depth.shape
     nby = gain_px.shape[0]
     nbx = (W + b - 1) // b
     c0, c1, c2 = params[0], params[1], params[2]
     disp = params[7] > 0.5
+    n = 2 * half + 1
     for ib in prange(nby):
         by = interleaved(ib, nby)
         if not _any_mixed(mixed_px, by):
@@ -204,94 +252,89 @@ def row_median_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, hal
         zr = np.empty(W + 2 * half)
         zr[:half] = np.nan
         zr[W + half:] = np.nan
-        cap = LANES + b                 # a batch runs once LANES are reached, after a whole block
-        lanes = np.empty(cap, dtype=np.int64)
-        cnt = np.empty(cap, dtype=np.int64)
-        zc = np.empty(cap)
-        gc = np.empty(cap)
-        buf = np.empty((2 * half + 1, cap))
+        cnt = np.empty(LANES, dtype=np.int64)
+        zc = np.empty(LANES)
+        gc = np.empty(LANES)
+        buf = np.empty((n, LANES))
+        seg = np.empty((3, LANES), dtype=np.int64)     # per segment of a batch: first pixel, first lane, pixels
         for v in range(by * b, min(H, by * b + b)):
             for u in range(W):
                 z = depth[v, u] * scale
                 zr[half + u] = z if (z >= zmin) & (z <= zmax) else np.nan
             m = 0
-            for bx in range(nbx):           # mixed is per block: whole blocks in or out
-                if not mixed_px[by, bx * b] > 0.0:
+            ns = 0
+            bx = 0
+            while bx < nbx:
+                if not mixed_px[by, bx * b] > 0.0:       # mixed is per block: whole blocks in or out
+                    bx += 1
                     continue
-                for u in range(bx * b, min(W, bx * b + b)):
-                    rowmed[v, u] = np.nan   # invalid pixels; the valid ones are written by the batch
-                    lanes[m] = u
-                    m += 1 if zr[half + u] > 0.0 else 0
-                if m >= LANES:
-                    _row_batch(zr, lanes, m, half, v, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, zc, gc,
-                               cnt, net, rowmed)
-                    m = 0
+                u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
+                while u < u1:
+                    take = min(u1 - u, LANES - m)
+                    _row_copy(zr, u, m, take, half, by, gain_px, buf, zc, gc)
+                    seg[0, ns] = u
+                    seg[1, ns] = m
+                    seg[2, ns] = take
+                    ns += 1
+                    m += take
+                    u += take
+                    if m == LANES:
+                        _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                        _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
+                        m = 0
+                        ns = 0
             if m > 0:
-                _row_batch(zr, lanes, m, half, v, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, zc, gc, cnt,
-                           net, rowmed)
-
-
-@njit(**JIT)
-def _surface_batch(lanes, zc, m, rows_half, v, b, gain_px, mixed_px, rowmed, jump_rel, thr_sig, c0, c1, c2, disp,
-                   buf, gc, cnt, net, surface_z):
-    """The surface medians of the m pixels ``lanes`` (depths zc) of row v into surface_z[v]: the median of
-    the row medians of rows v - rows_half .. v + rows_half of their column that agree with them, read where
-    that row's window is mixed; the pixel's own depth where none agrees."""
-    H = rowmed.shape[0]
-    by = v // b
-    for j in range(m):
-        gc[j] = gain_px[by, lanes[j]]
-    for t in range(2 * rows_half + 1):
-        r = v - rows_half + t
-        if r < 0 or r >= H:
-            for j in range(m):
-                buf[t, j] = np.nan
-            continue
-        rb = r // b
-        for j in range(m):
-            u = lanes[j]
-            buf[t, j] = rowmed[r, u] if mixed_px[rb, u] > 0.0 else np.nan
-    _median_batch(buf, zc, gc, cnt, m, 2 * rows_half + 1, jump_rel, thr_sig, c0, c1, c2, disp, net)
-    for j in range(m):
-        k = cnt[j]
-        surface_z[v, lanes[j]] = lane_median(buf, j, k) if k > 0 else zc[j]
+                _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
 
 
 @njit(parallel=True, **JIT)
 def surface_median_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, rows_half, net, gain_px, mixed_px,
                          rowmed, surface_z):
     """Stage 3c: at each valid pixel of a window of two surfaces, the median of the agreeing row medians of
-    2 rows_half + 1 rows (noise_model.surface_depths) into ``surface_z`` (H, W) [m]; other pixels are not
-    written. ``net``: :func:`noise_model.kernels.compiled.sorting_network` (2 rows_half + 1)."""
+    2 rows_half + 1 rows (noise_model.surface_depths) into ``surface_z`` (H, W) [m], the pixel's own depth
+    where none agrees; invalid pixels get NaN and are never read. In batches of runs of contiguous mixed
+    blocks, as :func:`row_median_stage`. ``net``: :func:`noise_model.kernels.compiled.sorting_network`
+    (2 rows_half + 1)."""
     H, W = depth.shape
     nby = gain_px.shape[0]
     nbx = (W + b - 1) // b
     c0, c1, c2 = params[0], params[1], params[2]
     disp = params[7] > 0.5
+    n = 2 * rows_half + 1
     for ib in prange(nby):
         by = interleaved(ib, nby)
         if not _any_mixed(mixed_px, by):
             continue
-        cap = LANES + b                 # a batch runs once LANES are reached, after a whole block
-        lanes = np.empty(cap, dtype=np.int64)
-        zc = np.empty(cap)
-        gc = np.empty(cap)
-        cnt = np.empty(cap, dtype=np.int64)
-        buf = np.empty((2 * rows_half + 1, cap))
+        zc = np.empty(LANES)
+        gc = np.empty(LANES)
+        cnt = np.empty(LANES, dtype=np.int64)
+        buf = np.empty((n, LANES))
+        seg = np.empty((3, LANES), dtype=np.int64)
         for v in range(by * b, min(H, by * b + b)):
             m = 0
-            for bx in range(nbx):           # mixed is per block: whole blocks in or out
+            ns = 0
+            bx = 0
+            while bx < nbx:
                 if not mixed_px[by, bx * b] > 0.0:
+                    bx += 1
                     continue
-                for u in range(bx * b, min(W, bx * b + b)):
-                    z = depth[v, u] * scale
-                    lanes[m] = u
-                    zc[m] = z
-                    m += 1 if (z >= zmin) & (z <= zmax) else 0
-                if m >= LANES:
-                    _surface_batch(lanes, zc, m, rows_half, v, b, gain_px, mixed_px, rowmed, jump_rel, thr_sig, c0, c1,
-                                   c2, disp, buf, gc, cnt, net, surface_z)
-                    m = 0
+                u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
+                while u < u1:
+                    take = min(u1 - u, LANES - m)
+                    _surface_copy(depth, scale, zmin, zmax, u, m, take, rows_half, v, b, gain_px, mixed_px, rowmed,
+                                  buf, zc, gc)
+                    seg[0, ns] = u
+                    seg[1, ns] = m
+                    seg[2, ns] = take
+                    ns += 1
+                    m += take
+                    u += take
+                    if m == LANES:
+                        _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                        _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)
+                        m = 0
+                        ns = 0
             if m > 0:
-                _surface_batch(lanes, zc, m, rows_half, v, b, gain_px, mixed_px, rowmed, jump_rel, thr_sig, c0, c1,
-                               c2, disp, buf, gc, cnt, net, surface_z)
+                _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)
