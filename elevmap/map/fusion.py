@@ -488,11 +488,13 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
                 zk = z[k]
                 vk = var[k]
                 # finite and within MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE (NaN fails all)
-                ok = (abs(xk) <= MAX_COORDINATE_M and abs(yk) <= MAX_COORDINATE_M and abs(zk) <= MAX_COORDINATE_M
-                      and vk >= MIN_HEIGHT_VARIANCE and vk <= MAX_POINT_VARIANCE) or not check
+                # & rather than and: no branch per comparison
+                ok = ((abs(xk) <= MAX_COORDINATE_M) & (abs(yk) <= MAX_COORDINATE_M) & (abs(zk) <= MAX_COORDINATE_M)
+                      & (vk >= MIN_HEIGHT_VARIANCE) & (vk <= MAX_POINT_VARIANCE)) or not check
                 if has_h and check:
-                    ok = ok and hcov[k, 0] >= 0.0 and hcov[k, 0] < inf and hcov[k, 2] >= 0.0 and hcov[k, 2] < inf \
-                        and abs(hcov[k, 1]) < inf
+                    h0 = hcov[k, 0]
+                    h2 = hcov[k, 2]
+                    ok = ok & (h0 >= 0.0) & (h0 < inf) & (h2 >= 0.0) & (h2 < inf) & (abs(hcov[k, 1]) < inf)
                 if not ok:
                     nbad += 1
                     continue
