@@ -26,7 +26,15 @@ from ..formulas import (
 from ..geometry import centred_moments
 from ..numba_config import JIT
 
-__all__ = ["sorting_network"]
+__all__ = ["EDGES", "PLANES", "POINTS", "ROW_MEDIANS", "SURFACE_MEDIANS", "sorting_network"]
+
+#: Bits of a fused kernel's ``parts`` argument, one per stage it can run (noise_model.kernels.STAGES):
+#: ``surfaces_stage`` runs PLANES, EDGES, ROW_MEDIANS; ``points_stage`` SURFACE_MEDIANS, POINTS.
+PLANES = 1
+EDGES = 2
+ROW_MEDIANS = 4
+SURFACE_MEDIANS = 8
+POINTS = 16
 
 #: noise_model.geometry.centred_moments, compiled (S a (10,) or longer moment vector, n a number)
 centred = njit(**JIT)(centred_moments)

@@ -41,10 +41,10 @@ from ..geometry import (
     incidence_angle_stats, mixed_windows, plane_depths, surface_depths,
 )
 from ..numba_config import resolve_threads, threads
-from .compiled import sorting_network
-from .planes import moments_stage, planes_stage
+from .compiled import EDGES, PLANES, POINTS, ROW_MEDIANS, SURFACE_MEDIANS, sorting_network
+from .planes import moments_stage
 from .points import points_stage
-from .surfaces import edges_stage, row_median_stage, surface_median_stage
+from .surfaces import surfaces_stage
 
 __all__ = ["MAX_DEPTH_M", "MIN_DEPTH_M", "NOISE_DEPTH_SIGMAS", "STAGES", "MapPoints", "Workspace",
            "depth_to_map_points", "depth_to_map_points_by_stage", "depth_to_map_points_reference"]
@@ -144,7 +144,7 @@ class Workspace:
     def blocks(self, block_px: int):
         """(M (nby, nbx, 10), columns (7, nby, W)) for blocks of ``block_px``: the block moments and, per
         pixel column of each block row, gain, E[g], E[g^2], alpha, beta, gamma and the mixed flag
-        (:func:`noise_model.kernels.planes.planes_stage`); allocated again only when the block size changes."""
+        (:func:`noise_model.kernels.planes.planes_block_row`); allocated again only when the block size changes."""
         b = int(block_px)
         if b != self._block_px:
             H, W = self.shape
@@ -155,9 +155,17 @@ class Workspace:
         return self._moments, self._columns
 
 
-def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws):
-    """The stages of one frame as (name, kernel, arguments), in order, on the buffers of ``ws``; the first
-    returns the number of points N."""
+def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_by_one=False):
+    """The kernels of one frame as (name, kernel, arguments), in order, on the buffers of ``ws``; the first
+    returns the number of points N.
+
+    Three parallel regions: ``moments``; the planes, edges and row medians of each block row
+    (:func:`noise_model.kernels.surfaces.surfaces_stage`); the surface medians and points of each block row
+    (:func:`noise_model.kernels.points.points_stage`). Each boundary is a real dependency: a window's plane
+    needs the moments of the block rows around it, a surface median the row medians of the rows around it.
+    ``one_by_one``: the two fused kernels once per stage of :data:`STAGES`, each running that stage alone
+    (the same code on the same data, so the same result, bit for bit), to time them.
+    """
     H, W = d.shape
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     up = (np.arange(W) - cx) * (1.0 / fx)       # normalised pixel coordinates u' = (u - cx) / fx per column
@@ -168,22 +176,26 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws):
     gain, eg, eg2, alpha, beta, gamma, mixed = cols
     use_pose = P is not None
     P = np.zeros((6, 6)) if P is None else P
-    return [
-        ("moments", moments_stage, (d, scale, zmin, zmax, up, vp, b, M, ws.rowcount, ws.offsets)),
-        ("planes", planes_stage, (M, b, W, WINDOW_RADIUS_BLOCKS, NORMAL_MIN_POINTS, DEGENERATE_REL, MIXED_WINDOW_Z,
-                                  params, _GH_X, _GH_W, _GRID_X, _GRID_W, gain, eg, eg2, alpha, beta, gamma, mixed)),
-        ("edges", edges_stage, (d, scale, zmin, zmax, params, jump_rel, thr_sig, b, gain, ws.rowcount, ws.flags,
-                                ws.speckle_z)),
-        ("row_medians", row_median_stage, (d, scale, zmin, zmax, params, jump_rel, thr_sig, b, ROW_MEDIAN_HALF_PX,
-                                           sorting_network(2 * ROW_MEDIAN_HALF_PX + 1), gain, mixed, ws.row_median)),
-        ("surface_medians", surface_median_stage, (d, scale, zmin, zmax, params, jump_rel, thr_sig, b,
-                                                   SURFACE_HALF_ROWS, sorting_network(2 * SURFACE_HALF_ROWS + 1), gain,
-                                                   mixed, ws.row_median, ws.surface_z)),
-        ("points", points_stage, (d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, NOISE_DEPTH_SIGMAS,
-                                  b, bool(bin_at_plane), gain, eg, eg2, alpha, beta, gamma, mixed, ws.offsets,
-                                  ws.flags, ws.speckle_z, ws.surface_z, ws.points_map, ws.height_var,
-                                  ws.horizontal_cov, ws.pixel)),
-    ]
+
+    def surfaces(parts):
+        return (parts, d, scale, zmin, zmax, params, jump_rel, thr_sig, b, M, WINDOW_RADIUS_BLOCKS, NORMAL_MIN_POINTS,
+                DEGENERATE_REL, MIXED_WINDOW_Z, _GH_X, _GH_W, _GRID_X, _GRID_W, ROW_MEDIAN_HALF_PX,
+                sorting_network(2 * ROW_MEDIAN_HALF_PX + 1), gain, eg, eg2, alpha, beta, gamma, mixed, ws.rowcount,
+                ws.flags, ws.speckle_z, ws.row_median)
+
+    def points(parts):
+        return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, NOISE_DEPTH_SIGMAS, b,
+                bool(bin_at_plane), jump_rel, thr_sig, SURFACE_HALF_ROWS, sorting_network(2 * SURFACE_HALF_ROWS + 1),
+                ws.row_median, gain, eg, eg2, alpha, beta, gamma, mixed, ws.offsets, ws.flags, ws.speckle_z,
+                ws.surface_z, ws.points_map, ws.height_var, ws.horizontal_cov, ws.pixel)
+
+    moments = ("moments", moments_stage, (d, scale, zmin, zmax, up, vp, b, M, ws.rowcount, ws.offsets))
+    if not one_by_one:
+        return [moments, ("surfaces", surfaces_stage, surfaces(PLANES | EDGES | ROW_MEDIANS)),
+                ("points", points_stage, points(SURFACE_MEDIANS | POINTS))]
+    return [moments, ("planes", surfaces_stage, surfaces(PLANES)), ("edges", surfaces_stage, surfaces(EDGES)),
+            ("row_medians", surfaces_stage, surfaces(ROW_MEDIANS)),
+            ("surface_medians", points_stage, points(SURFACE_MEDIANS)), ("points", points_stage, points(POINTS))]
 
 
 def _run_stages(calls, clock=None) -> int:
@@ -310,7 +322,8 @@ def depth_to_map_points_by_stage(depth, K, T_map_cam, pose_cov=None, *, depth_sc
         raise ValueError(f"workspace must be a Workspace of the depth image's size {d.shape}")
     clock: dict[str, float] = {}
     with threads(n):
-        N = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws), clock)
+        N = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_by_one=True),
+                        clock)
     out = MapPoints(ws.points_map[:, :N].T, ws.height_var[:N], ws.horizontal_cov[:, :N].T, ws.pixel[:N])
     if workspace is None:
         out = MapPoints(*(np.ascontiguousarray(a) for a in out))

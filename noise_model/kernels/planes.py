@@ -203,11 +203,11 @@ def mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel
     return between * dof > chi2_quantile_per_dof(k, mix_z) * k * within
 
 
-@njit(parallel=True, **JIT)
-def planes_stage(M, b, W, radius, min_points, degenerate_rel, mix_z, params, hx, hw, gx, gw,
-                 gain_px, eg_px, eg2_px, alpha_px, beta_px, gamma_px, mixed_px):
-    """Stage 2: per block, the plane fitted over the (2 radius + 1)^2 blocks around it, spread over the
-    block's pixel columns.
+@njit(**JIT)
+def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, params, hx, hw, gx, gw,
+                     gain_px, eg_px, eg2_px, alpha_px, beta_px, gamma_px, mixed_px):
+    """Stage 2 for block row ``by``: per block, the plane fitted over the (2 radius + 1)^2 blocks around it,
+    spread over the block's pixel columns (run by :func:`noise_model.kernels.surfaces.surfaces_stage`).
 
     Parameters
     ----------
@@ -233,37 +233,36 @@ def planes_stage(M, b, W, radius, min_points, degenerate_rel, mix_z, params, hx,
     nby, nbx = M.shape[0], M.shape[1]
     ct, theta_max = params[3], params[4]
     disp = params[7] > 0.5
-    for by in prange(nby):
-        Vs = np.zeros((nbx, 10))
-        for i in range(max(0, by - radius), min(nby, by + radius + 1)):
-            for bx in range(nbx):
-                for c in range(10):
-                    Vs[bx, c] += M[i, bx, c]
-        S = np.empty(10)
+    Vs = np.zeros((nbx, 10))
+    for i in range(max(0, by - radius), min(nby, by + radius + 1)):
         for bx in range(nbx):
-            g = 0.0
-            eg = 0.0
-            eg2 = 0.0
-            pa = pb = 0.0
-            pg = np.nan
-            mixed = False           # a block without valid pixels has nothing to denoise (the medians skip it)
-            if M[by, bx, 0] > 0.0:
-                S[:] = 0.0
-                for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
-                    for c in range(10):
-                        S[c] += Vs[j, c]
-                t, pa, pb, pg, ok = plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
-                ts = theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
-                mixed = window_mixed(M, S, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
-                if not ok:
-                    pg = np.nan
-                eg, eg2 = gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw)
-                g = gain_model(min(t, theta_max), ct, disp)
-            for u in range(bx * b, min(W, bx * b + b)):
-                gain_px[by, u] = g
-                eg_px[by, u] = eg
-                eg2_px[by, u] = eg2
-                alpha_px[by, u] = pa
-                beta_px[by, u] = pb
-                gamma_px[by, u] = pg
-                mixed_px[by, u] = 1.0 if mixed else 0.0
+            for c in range(10):
+                Vs[bx, c] += M[i, bx, c]
+    S = np.empty(10)
+    for bx in range(nbx):
+        g = 0.0
+        eg = 0.0
+        eg2 = 0.0
+        pa = pb = 0.0
+        pg = np.nan
+        mixed = False           # a block without valid pixels has nothing to denoise (the medians skip it)
+        if M[by, bx, 0] > 0.0:
+            S[:] = 0.0
+            for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
+                for c in range(10):
+                    S[c] += Vs[j, c]
+            t, pa, pb, pg, ok = plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
+            ts = theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
+            mixed = window_mixed(M, S, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
+            if not ok:
+                pg = np.nan
+            eg, eg2 = gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw)
+            g = gain_model(min(t, theta_max), ct, disp)
+        for u in range(bx * b, min(W, bx * b + b)):
+            gain_px[by, u] = g
+            eg_px[by, u] = eg
+            eg2_px[by, u] = eg2
+            alpha_px[by, u] = pa
+            beta_px[by, u] = pb
+            gamma_px[by, u] = pg
+            mixed_px[by, u] = 1.0 if mixed else 0.0

@@ -1,5 +1,6 @@
 """Stage 4 of the depth -> map-points kernel: each valid pixel's point, its covariance in the camera frame,
-rotated into the map frame with the pose term, written to the outputs in row-major pixel order.
+rotated into the map frame with the pose term, written to the outputs in row-major pixel order (in the
+same parallel region as the surface medians of stage 3c).
 
 The NumPy functions this stage compiles: :func:`noise_model.point_covariances` and
 :func:`noise_model.to_map_frame`, with the depth at which sigma_z is evaluated and the binning depth of
@@ -13,21 +14,26 @@ import numpy as np
 from numba import njit, prange
 
 from ..numba_config import JIT
-from .compiled import expected_model, interleaved, sigma_model
-from .surfaces import LEFT_EDGE, RIGHT_EDGE, SPECKLE
+from .compiled import POINTS, SURFACE_MEDIANS, expected_model, interleaved, sigma_model
+from .surfaces import LEFT_EDGE, RIGHT_EDGE, SPECKLE, surface_medians_block_row
 
 __all__: list[str] = []
 
 
 @njit(parallel=True, **JIT)
-def points_stage(depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, noise_sigmas, b, bin_at_plane,
-                 gain_px, eg_px, eg2_px, alpha_px, beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z,
-                 pts, hvar, hcov, pix):
-    """Stage 4: fill columns offsets[v] .. offsets[v + 1] - 1 of pts (3, n) [m], hvar (n,) [m^2], hcov (3, n)
-    [m^2] and pix (n,) with the valid pixels of row v.
+def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, noise_sigmas, b,
+                 bin_at_plane, jump_rel, thr_sig, rows_half, surface_net, rowmed, gain_px, eg_px, eg2_px, alpha_px,
+                 beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z, pts, hvar, hcov, pix):
+    """Stages 3c and 4 per block row, in one parallel region: those of ``parts`` (SURFACE_MEDIANS, POINTS
+    of :mod:`noise_model.kernels.compiled`). Stage 3c, the surface medians of the block row's pixels:
+    :func:`noise_model.kernels.surfaces.surface_medians_block_row` (jump_rel .. rowmed in, surface_z out).
+    Stage 4, inline below: fill columns offsets[v] .. offsets[v + 1] - 1 of pts (3, n) [m], hvar (n,)
+    [m^2], hcov (3, n) [m^2] and pix (n,) with the valid pixels of row v.
 
     Parameters
     ----------
+    parts : int
+        Bits of SURFACE_MEDIANS, POINTS.
     depth, scale, zmin, zmax
         As in :func:`noise_model.kernels.planes.moments_stage`.
     up, vp : ndarray, shapes (W,), (H,)
@@ -43,7 +49,7 @@ def points_stage(depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, param
     noise_sigmas : float
         sigma_z is evaluated at the local plane's depth when the pixel lies within this many sigma of it.
     gain_px .. mixed_px : ndarray, shape (nby, W)
-        The window's plane per pixel column (:func:`noise_model.kernels.planes.planes_stage`).
+        The window's plane per pixel column (:func:`noise_model.kernels.planes.planes_block_row`).
     offsets : ndarray, shape (H + 1,)
         Where each row's points go (:func:`noise_model.kernels.planes.moments_stage`).
     flags, speckle_z, surface_z : ndarray, shape (H, W)
@@ -80,10 +86,15 @@ def points_stage(depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, param
     nan = np.nan
     for ib in prange(nby):
         by = interleaved(ib, nby)
+        if parts & SURFACE_MEDIANS:
+            surface_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, rows_half,
+                                      surface_net, gain_px, mixed_px, rowmed, surface_z)
         cu = np.empty(W, dtype=np.int64)
         cz = np.empty(W)
         cf = np.empty(W, dtype=np.uint8)
         for v in range(by * b, min(H, by * b + b)):
+            if not parts & POINTS:
+                break
             if offsets[v + 1] == offsets[v]:
                 continue
             # (a) compaction of the valid pixels (column, depth, flags): every pixel is stored, the count

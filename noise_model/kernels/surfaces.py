@@ -4,13 +4,16 @@ then in windows of two surfaces the row medians and the surface medians.
 The NumPy functions these stages compile: :func:`noise_model.depth_edges`, :func:`noise_model.despeckle`,
 :func:`noise_model.row_medians` and :func:`noise_model.surface_depths`. Every stage works per image row
 (rows grouped by block row, so that a pixel's block values are one row of the (nby, W) arrays), and
-writes only its own rows: the result does not depend on the thread count.
+writes only its own rows: the result does not depend on the thread count. :func:`surfaces_stage` runs
+the planes, the edges and the row medians of each block row in one parallel region; the surface medians
+read the row medians of the neighbouring block rows, so they run in the next region, before the points
+(:func:`noise_model.kernels.points.points_stage`).
 
-What the next stage reads (:mod:`noise_model.kernels.points`):
+What the points read:
 
 * ``flags`` (H, W) uint8 per valid pixel: :data:`LEFT_EDGE`, :data:`RIGHT_EDGE`, :data:`SPECKLE`;
 * ``speckle_z`` (H, W) [m]: a speckle's replacement depth, written at speckles only;
-* ``surface_z`` (H, W) [m]: the surface median, written at the valid pixels of mixed windows only.
+* ``surface_z`` (H, W) [m]: the surface median, written at the pixels of mixed windows only.
 """
 
 from __future__ import annotations
@@ -19,7 +22,11 @@ import numpy as np
 from numba import njit, prange
 
 from ..numba_config import JIT
-from .compiled import agrees, agrees_select, interleaved, lane_median, rank_median, sigma_model, sort_lanes_any
+from .compiled import (
+    EDGES, PLANES, ROW_MEDIANS, agrees, agrees_select, interleaved, lane_median, rank_median, sigma_model,
+    sort_lanes_any,
+)
+from .planes import planes_block_row
 
 __all__ = ["LEFT_EDGE", "RIGHT_EDGE", "SPECKLE"]
 
@@ -62,23 +69,34 @@ def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0,
 
 
 @njit(parallel=True, **JIT)
-def edges_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, gain_px, rowcount, flags, speckle_z):
-    """Stage 3a: the depth edges and speckles of every valid pixel into ``flags`` and ``speckle_z``.
+def surfaces_stage(parts, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, M, radius, min_points,
+                   degenerate_rel, mix_z, hx, hw, gx, gw, half, row_net, gain_px, eg_px, eg2_px, alpha_px, beta_px,
+                   gamma_px, mixed_px, rowcount, flags, speckle_z, rowmed):
+    """Stages 2, 3a and 3b per block row, in one parallel region: those of ``parts`` (PLANES, EDGES,
+    ROW_MEDIANS of :mod:`noise_model.kernels.compiled`), in that order. Each needs only its own block row
+    of the one before, so they share a region; run one at a time, they are timed alone.
 
-    Edges (noise_model.depth_edges with the pixel's theta): a valid pixel is on a left edge when its left
-    neighbour is invalid or farther by more than max(jump_rel z, thr_sig sigma_z(z, theta)), thr_sig =
-    jump_sigmas sqrt(2); right edges mirror it; the image border is no edge (-inf beyond it: not NaN, and
-    never farther). Speckles (noise_model.despeckle): no neighbour of 8 agrees. The two row neighbours
-    settle almost every pixel by the relative part of the threshold alone, in the branch-free loop; only
-    the few pixels both of them fail that way (edges, noisy far surfaces) are tested in full and, when
-    still alone, read their other six neighbours.
+    Stage 2, the window's plane: :func:`noise_model.kernels.planes.planes_block_row` (M, radius ..
+    gw in, gain_px .. mixed_px out). Stage 3b, the row medians: :func:`row_medians_block_row` (half,
+    row_net in, rowmed out).
+
+    Stage 3a, inline below: the depth edges and speckles of every valid pixel into ``flags`` and
+    ``speckle_z``. Edges (noise_model.depth_edges with the pixel's theta): a valid pixel is on a left edge
+    when its left neighbour is invalid or farther by more than max(jump_rel z, thr_sig sigma_z(z, theta)),
+    thr_sig = jump_sigmas sqrt(2); right edges mirror it; the image border is no edge (-inf beyond it: not
+    NaN, and never farther). Speckles (noise_model.despeckle): no neighbour of 8 agrees. The two row
+    neighbours settle almost every pixel in the branch-free loop; only the few pixels neither of them
+    settles there (edges, noisy far surfaces) are tested in full and, when still alone, read their other
+    six neighbours.
 
     Parameters
     ----------
+    parts : int
+        Bits of PLANES, EDGES, ROW_MEDIANS.
     jump_rel, thr_sig : float
-        The relative part of the threshold and its noise part per sigma_z.
+        The relative part of the depth-edge threshold and its noise part per sigma_z.
     gain_px : ndarray, shape (nby, W)
-        The angle gain of each pixel column's window (:func:`noise_model.kernels.planes.planes_stage`).
+        The angle gain of each pixel column's window (stage 2).
     rowcount : ndarray, shape (H,)
         Valid pixels per row (rows without any are skipped).
     flags : ndarray, shape (H, W), uint8, out
@@ -92,11 +110,16 @@ def edges_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, gain_px,
     grows_z2 = (c0 >= 0.0) & (c1 >= 0.0) & (c2 >= 0.0) & (params[3] >= 0.0)    # and the gain g >= 0
     for ib in prange(nby):
         by = interleaved(ib, nby)
+        if parts & PLANES:
+            planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, params, hx, hw, gx, gw, gain_px,
+                             eg_px, eg2_px, alpha_px, beta_px, gamma_px, mixed_px)
         zp = np.empty(W + 2)         # z of the row, padded: zp[u + 1] = z[u]
         zp[0] = -np.inf
         zp[W + 1] = -np.inf
         nbuf = np.empty(8)
         for v in range(by * b, min(H, by * b + b)):
+            if not parts & EDGES:
+                break
             if rowcount[v] == 0:
                 continue
             for u in range(W):
@@ -141,6 +164,9 @@ def edges_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, gain_px,
                         speckle_z[v, u] = md
                     else:
                         flags[v, u] = flags[v, u] & ~SPECKLE
+        if parts & ROW_MEDIANS:
+            row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, half, row_net, gain_px,
+                                  mixed_px, rowmed)
 
 
 @njit(**JIT)
@@ -231,110 +257,106 @@ def _write_medians(buf, zc, cnt, seg_u0, seg_m0, seg_n, ns, v, fallback_own, out
             out[v, seg_u0[q] + j] = lane_median(buf, lane, k) if k > 0 else none
 
 
-@njit(parallel=True, **JIT)
-def row_median_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, half, net, gain_px, mixed_px, rowmed):
-    """Stage 3b: in windows of two surfaces, each valid pixel's row median (noise_model.row_medians) into
-    ``rowmed`` (H, W) [m], NaN for invalid ones (no neighbour agrees with NaN); pixels outside mixed windows
-    are neither computed nor written (the next stage reads rowmed only where mixed_px says so), and block
-    rows without any are skipped. Mixed windows come in whole blocks: the runs of contiguous mixed blocks of
+@njit(**JIT)
+def row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, half, net, gain_px, mixed_px,
+                          rowmed):
+    """Stage 3b for block row ``by``: in windows of two surfaces, each valid pixel's row median
+    (noise_model.row_medians) into ``rowmed`` (H, W) [m], NaN for invalid ones (no neighbour agrees with
+    NaN); pixels outside mixed windows are neither computed nor written (the next stage reads rowmed only
+    where mixed_px says so), and block rows without any are skipped. Mixed windows come in whole blocks: the runs of contiguous mixed blocks of
     a row are copied into batches of at most :data:`LANES` pixels. ``net``:
     :func:`noise_model.kernels.compiled.sorting_network` (2 half + 1)."""
     H, W = depth.shape
-    nby = gain_px.shape[0]
     nbx = (W + b - 1) // b
     c0, c1, c2 = params[0], params[1], params[2]
     disp = params[7] > 0.5
     n = 2 * half + 1
-    for ib in prange(nby):
-        by = interleaved(ib, nby)
-        if not _any_mixed(mixed_px, by):
-            continue
-        zr = np.empty(W + 2 * half)
-        zr[:half] = np.nan
-        zr[W + half:] = np.nan
-        cnt = np.empty(LANES, dtype=np.int64)
-        zc = np.empty(LANES)
-        gc = np.empty(LANES)
-        buf = np.empty((n, LANES))
-        seg = np.empty((3, LANES), dtype=np.int64)     # per segment of a batch: first pixel, first lane, pixels
-        for v in range(by * b, min(H, by * b + b)):
-            for u in range(W):
-                z = depth[v, u] * scale
-                zr[half + u] = z if (z >= zmin) & (z <= zmax) else np.nan
-            m = 0
-            ns = 0
-            bx = 0
-            while bx < nbx:
-                if not mixed_px[by, bx * b] > 0.0:       # mixed is per block: whole blocks in or out
-                    bx += 1
-                    continue
-                u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
-                while u < u1:
-                    take = min(u1 - u, LANES - m)
-                    _row_copy(zr, u, m, take, half, by, gain_px, buf, zc, gc)
-                    seg[0, ns] = u
-                    seg[1, ns] = m
-                    seg[2, ns] = take
-                    ns += 1
-                    m += take
-                    u += take
-                    if m == LANES:
-                        _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
-                        _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
-                        m = 0
-                        ns = 0
-            if m > 0:
-                _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
-                _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
+    if not _any_mixed(mixed_px, by):
+        return
+    zr = np.empty(W + 2 * half)
+    zr[:half] = np.nan
+    zr[W + half:] = np.nan
+    cnt = np.empty(LANES, dtype=np.int64)
+    zc = np.empty(LANES)
+    gc = np.empty(LANES)
+    buf = np.empty((n, LANES))
+    seg = np.empty((3, LANES), dtype=np.int64)     # per segment of a batch: first pixel, first lane, pixels
+    for v in range(by * b, min(H, by * b + b)):
+        for u in range(W):
+            z = depth[v, u] * scale
+            zr[half + u] = z if (z >= zmin) & (z <= zmax) else np.nan
+        m = 0
+        ns = 0
+        bx = 0
+        while bx < nbx:
+            if not mixed_px[by, bx * b] > 0.0:       # mixed is per block: whole blocks in or out
+                bx += 1
+                continue
+            u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
+            while u < u1:
+                take = min(u1 - u, LANES - m)
+                _row_copy(zr, u, m, take, half, by, gain_px, buf, zc, gc)
+                seg[0, ns] = u
+                seg[1, ns] = m
+                seg[2, ns] = take
+                ns += 1
+                m += take
+                u += take
+                if m == LANES:
+                    _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                    _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
+                    m = 0
+                    ns = 0
+        if m > 0:
+            _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+            _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
 
 
-@njit(parallel=True, **JIT)
-def surface_median_stage(depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, rows_half, net, gain_px, mixed_px,
-                         rowmed, surface_z):
-    """Stage 3c: at each valid pixel of a window of two surfaces, the median of the agreeing row medians of
+@njit(**JIT)
+def surface_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, rows_half, net, gain_px,
+                              mixed_px, rowmed, surface_z):
+    """Stage 3c for block row ``by`` (run by :func:`noise_model.kernels.points.points_stage`): at each valid
+    pixel of a window of two surfaces, the median of the agreeing row medians of
     2 rows_half + 1 rows (noise_model.surface_depths) into ``surface_z`` (H, W) [m], the pixel's own depth
     where none agrees; invalid pixels get NaN and are never read. In batches of runs of contiguous mixed
-    blocks, as :func:`row_median_stage`. ``net``: :func:`noise_model.kernels.compiled.sorting_network`
+    blocks, as :func:`row_medians_block_row`. ``net``: :func:`noise_model.kernels.compiled.sorting_network`
     (2 rows_half + 1)."""
     H, W = depth.shape
-    nby = gain_px.shape[0]
     nbx = (W + b - 1) // b
     c0, c1, c2 = params[0], params[1], params[2]
     disp = params[7] > 0.5
     n = 2 * rows_half + 1
-    for ib in prange(nby):
-        by = interleaved(ib, nby)
-        if not _any_mixed(mixed_px, by):
-            continue
-        zc = np.empty(LANES)
-        gc = np.empty(LANES)
-        cnt = np.empty(LANES, dtype=np.int64)
-        buf = np.empty((n, LANES))
-        seg = np.empty((3, LANES), dtype=np.int64)
-        for v in range(by * b, min(H, by * b + b)):
-            m = 0
-            ns = 0
-            bx = 0
-            while bx < nbx:
-                if not mixed_px[by, bx * b] > 0.0:
-                    bx += 1
-                    continue
-                u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
-                while u < u1:
-                    take = min(u1 - u, LANES - m)
-                    _surface_copy(depth, scale, zmin, zmax, u, m, take, rows_half, v, b, gain_px, mixed_px, rowmed,
-                                  buf, zc, gc)
-                    seg[0, ns] = u
-                    seg[1, ns] = m
-                    seg[2, ns] = take
-                    ns += 1
-                    m += take
-                    u += take
-                    if m == LANES:
-                        _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
-                        _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)
-                        m = 0
-                        ns = 0
-            if m > 0:
-                _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
-                _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)
+    if not _any_mixed(mixed_px, by):
+        return
+    zc = np.empty(LANES)
+    gc = np.empty(LANES)
+    cnt = np.empty(LANES, dtype=np.int64)
+    buf = np.empty((n, LANES))
+    seg = np.empty((3, LANES), dtype=np.int64)
+    for v in range(by * b, min(H, by * b + b)):
+        m = 0
+        ns = 0
+        bx = 0
+        while bx < nbx:
+            if not mixed_px[by, bx * b] > 0.0:
+                bx += 1
+                continue
+            u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
+            while u < u1:
+                take = min(u1 - u, LANES - m)
+                _surface_copy(depth, scale, zmin, zmax, u, m, take, rows_half, v, b, gain_px, mixed_px, rowmed,
+                              buf, zc, gc)
+                seg[0, ns] = u
+                seg[1, ns] = m
+                seg[2, ns] = take
+                ns += 1
+                m += take
+                u += take
+                if m == LANES:
+                    _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                    _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)
+                    m = 0
+                    ns = 0
+        if m > 0:
+            _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+            _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)
