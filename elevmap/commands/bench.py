@@ -398,8 +398,11 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
         ``{"results": [{"name", "width", "height", "impl", "median_ms", "points_per_s", "frames",
         "threads", ...}, ...], "machine": {...}}``; the ``noise`` numba records carry ``stages`` [ms], each stage of
         :data:`noise_model.kernels.STAGES` timed alone; ``run``/``run_rrd`` records ``frames_per_s`` end to end and
-        ``split_ms`` (:mod:`elevmap.commands.bench_run`); ``first_frame_*`` records carry ``seconds``, ``stereo``
-        records ``target_ms``, ``render_ms`` and ``noise_and_match_ms`` (points: its valid pixels).
+        ``split_ms`` (:mod:`elevmap.commands.bench_run`); the ``update`` numba records ``stages`` [ms] (the map's
+        fusion stage by stage, :func:`_bench_update`), ``floor_ratio`` (to the ``floor`` record of the same points)
+        and ``cleanup_ms``; the ``mapper*`` records ``noise_ms`` and ``fusion_ms`` (a frame's split);
+        ``first_frame_*`` records carry ``seconds``, ``stereo`` records ``target_ms``, ``render_ms`` and
+        ``noise_and_match_ms`` (points: its valid pixels).
     """
     from tqdm import tqdm
 
