@@ -106,30 +106,32 @@ def _floor_frame():
     return depth, K, T, np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
 
 
-def _map_frames(model, nthreads: int) -> None:
-    """Map the synthetic frame with ``model`` as uint16 units and as float32 and float64 metres, with and
+def _map_frames(model, dtype, nthreads: int) -> None:
+    """Map the synthetic frame with ``model``, as uint16 units or float32 / float64 metres (``dtype``), with and
     without the visibility clean-up, then query the map the ways the commands do."""
     from ..map.elevation_map import ElevationMap
     from ..mapper import Camera, Mapper
 
     depth, K, T, P = _floor_frame()
-    metres = np.where(depth > 0, depth * 0.001, np.nan)
+    d = depth if dtype == np.uint16 else np.where(depth > 0, depth * 0.001, np.nan).astype(dtype)
     for cleanup in (True, False):
         emap = ElevationMap(4.0, 0.04, visibility_cleanup=cleanup, nthreads=nthreads)
         mapper = Mapper(emap, [Camera("warmup", K, _WIDTH, _HEIGHT, model=model)], nthreads=nthreads)
-        for k, d in enumerate((depth, metres.astype(np.float32), metres)):
+        for k, pose_cov in enumerate((P, None)):
             emap.move_to(T[:2, 3] + 0.04 * k)
-            mapper.integrate("warmup", d, T_map_cam=T, pose_cov=P if k != 1 else None, stamp=0.1 * (k + 1))
+            mapper.integrate("warmup", d, T_map_cam=T, pose_cov=pose_cov, stamp=0.1 * (k + 1))
     emap.predict(np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5]), T_map_base=T, dt=0.1)
     emap.fused_map()
     emap.height_at(np.array([[0.5, 0.0], [1.0, 0.2]]))
     emap.height_scan(np.eye(4), "legged_gym")
 
 
-def _mapping_paper(nthreads: int) -> None:
-    from noise_model.d435 import D435
+def _paper(dtype):
+    def run(nthreads: int) -> None:
+        from noise_model.d435 import D435
 
-    _map_frames(D435, nthreads)
+        _map_frames(D435, dtype, nthreads)
+    return run
 
 
 def _mapping_disparity(nthreads: int) -> None:
@@ -137,7 +139,9 @@ def _mapping_disparity(nthreads: int) -> None:
 
     from noise_model.d435 import D435
 
-    _map_frames(dataclasses.replace(D435, name="warmup-disparity", family="disparity"), nthreads)
+    model = dataclasses.replace(D435, name="warmup-disparity", family="disparity")
+    for dtype in (np.uint16, np.float32, np.float64):
+        _map_frames(model, dtype, nthreads)
 
 
 def _simulator(nthreads: int) -> None:
@@ -176,8 +180,10 @@ def warmup_steps(groups=WARMUP_GROUPS) -> list[WarmupStep]:
     unknown = [g for g in groups if g not in WARMUP_GROUPS]
     if unknown:
         raise ValueError(f"unknown warm-up group(s) {unknown}; choose from {', '.join(WARMUP_GROUPS)}")
-    steps = [WarmupStep("mapping", "noise model and map, the paper's family", _mapping_paper),
-             WarmupStep("mapping", "noise model and map, the disparity family", _mapping_disparity),
+    steps = [WarmupStep("mapping", "noise model and map, uint16 depth units (cameras, bags)", _paper(np.uint16)),
+             WarmupStep("mapping", "noise model, float32 depth in metres (recordings)", _paper(np.float32)),
+             WarmupStep("mapping", "noise model, float64 depth in metres", _paper(np.float64)),
+             WarmupStep("mapping", "noise model, the disparity family", _mapping_disparity),
              WarmupStep("simulator", "simulated walks (ray caster, reference noise)", _simulator),
              WarmupStep("stereo", "the physical D435 (projector, infrared pair, matcher)", _stereo)]
     return [s for s in steps if s.group in groups]
