@@ -136,9 +136,11 @@ class ElevationMap:
         Parameters
         ----------
         points_map : array_like, shape (N, 3)
-            Points in the map frame [m]; all finite (drop invalid points first).
+            Points in the map frame [m], any memory layout; all finite (drop invalid points first) and within
+            ``settings.MAX_COORDINATE_M``.
         height_var : array_like, shape (N,)
-            Variance of each point's height [m^2], finite and > 0.
+            Variance of each point's height [m^2], in [``settings.MIN_HEIGHT_VARIANCE``,
+            ``settings.MAX_POINT_VARIANCE``].
         stamp : float, optional
             Time of the frame [s] (the ``time`` layer); the frame counter when None.
         sensor_origin_map : (3,) array_like, optional
@@ -152,6 +154,12 @@ class ElevationMap:
         -------
         dict
             ``{"cells_updated": int, "cells_cleared": int}``.
+
+        Raises
+        ------
+        ValueError
+            A shape, dtype or value out of range, naming the array and what is wrong
+            (:func:`elevmap.map.settings.check_point_values`); the map is then unchanged.
         """
         p = np.asarray(points_map)
         if p.ndim != 2 or p.shape[1] != 3:
