@@ -3,7 +3,9 @@
 Frames come from any source (:mod:`elevmap.sources`); each is fused by a :class:`Mapper` into a
 robot-centric :class:`ElevationMap`; when the frames carry the true terrain (the simulator), the map
 is scored against it; with a recording path every frame goes to rerun through :mod:`elevmap.viz`
-(imported only then), laid out so that :class:`elevmap.sources.rrd.RrdSource` replays it bit-exact.
+(imported only then), laid out so that :class:`elevmap.sources.rrd.RrdSource` replays it bit-exact, and the
+views of the map (points, ellipsoids, trail, statistics, meshes) at ``MappingConfig.view_rate_hz`` per second
+of the frames' stamps.
 """
 
 from __future__ import annotations
