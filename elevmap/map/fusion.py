@@ -459,7 +459,8 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
 
     Consecutive points of a depth image mostly fall in the same cell: a run of points in one cell is
     summed in registers and added to the partial grid when the run ends (the order of the additions is
-    fixed by the points' order, so the result does not depend on the thread count)."""
+    fixed by the points' order, so the result does not depend on the thread count), and a point well
+    inside the previous point's cell skips the divisions of floor(x / res) (the same cell, exactly)."""
     n = data.shape[1]
     P = acc.shape[0]
     N = x.shape[0]
@@ -479,6 +480,7 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
         lowk = -1.0
         xk = yk = zk = vk = 0.0
         i = j = bi = bj = c = 0
+        cx0 = cx1 = cy0 = cy1 = 0.0            # the current cell's interior (empty: none yet)
         end = (N * (p + 1)) // P
         for k in range((N * p) // P, end + 1):
             last = k == end
@@ -498,19 +500,31 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
                 if not ok:
                     nbad += 1
                     continue
-                fi = math.floor(xk / res) - gx0
-                fj = math.floor(yk / res) - gy0
-                if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
-                    continue
-                i = int(fi)
-                j = int(fj)
-                bi = i + sx
-                if bi >= n:
-                    bi -= n
-                bj = j + sy
-                if bj >= n:
-                    bj -= n
-                c = bi * n + bj
+                # the cell of the previous point when this one lies inside that cell's interior shrunk by a
+                # relative 1e-9 (floor(x / res) cannot round across a border there: the division's rounding
+                # error is ~1e-16 of x / res); else floor(x / res) as everywhere else in the map
+                if not (xk >= cx0 and xk < cx1 and yk >= cy0 and yk < cy1):
+                    fi = math.floor(xk / res) - gx0
+                    fj = math.floor(yk / res) - gy0
+                    if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
+                        continue
+                    i = int(fi)
+                    j = int(fj)
+                    bi = i + sx
+                    if bi >= n:
+                        bi -= n
+                    bj = j + sy
+                    if bj >= n:
+                        bj -= n
+                    c = bi * n + bj
+                    gx = float(i + gx0)
+                    gy = float(j + gy0)
+                    mx = 1e-9 * max(abs(gx), abs(gx + 1.0), 1.0) * res
+                    my = 1e-9 * max(abs(gy), abs(gy + 1.0), 1.0) * res
+                    cx0 = gx * res + mx
+                    cx1 = (gx + 1.0) * res - mx
+                    cy0 = gy * res + my
+                    cy1 = (gy + 1.0) * res - my
             if last or c != cur:
                 if cur >= 0:                         # the run in cell cur ends: add it to the partial grid
                     a = acc[p, cur]

@@ -219,6 +219,27 @@ def test_numba_equals_reference_over_frames_and_moves(cap, stride):
     assert cleared > 20                             # the clean-up's rays cleared cells
 
 
+@pytest.mark.parametrize("offset", [0.0, 5.0e5 + 0.02, -3.7e6])
+def test_cells_of_runs_of_points_and_of_border_points_are_those_of_the_reference(offset):
+    # runs of points inside a cell (as a depth image's neighbouring pixels), then points on a border and one ulp
+    # either side of it, near the origin and at UTM-sized coordinates: every point lands in floor(x / res)
+    res = 0.1
+    borders = (np.floor(offset / res) + np.arange(-8, 8)) * res
+    xs = []
+    for border in borders:
+        xs += list(border + np.linspace(0.005, 0.095, 10)) + [border, np.nextafter(border, -np.inf),
+                                                            np.nextafter(border, np.inf)]
+    x = np.array(xs)
+    y = offset + np.roll(x - offset, 7)
+    pts = np.column_stack([x, y, np.linspace(0.0, 0.01, len(x))])
+    maps = [ElevationMap(2.0, res, centre_xy=(offset, offset), fusion_params=FusionParams(min_points=1))
+            for _ in range(2)]
+    maps[0].update(pts, np.full(len(x), 1e-4))
+    maps[1].update(pts, np.full(len(x), 1e-4), impl="numpy")
+    np.testing.assert_array_equal(maps[0].layer("points"), maps[1].layer("points"))     # cell by cell counts
+    assert maps[0].layer("points").sum() > 0.8 * len(x)
+
+
 def test_same_result_with_one_and_two_threads():
     rng = np.random.default_rng(4)
     one, two = ElevationMap(4.0, 0.1, nthreads=1), ElevationMap(4.0, 0.1, nthreads=2)
