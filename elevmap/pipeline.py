@@ -371,8 +371,9 @@ class _Logger:
 
     Every logged frame: the time, the camera pose, the depth image and the exact values a replay needs
     (``meta/<camera>``), and the mapper's time per frame. At most ``view_rate_hz`` times per second of
-    frame stamps (:meth:`view_due`): the points with their ellipsoids, the trail, the map's statistics and,
-    every ``mesh_every`` views, the map meshes.
+    frame stamps (:meth:`view_due`): each camera's points with their ellipsoids (``world/points/<camera>``,
+    ``world/points_cov/<camera>``: each camera has its own slots, so every camera of a robot is drawn), and
+    the trail, the map's statistics and, every ``mesh_every`` views, the map meshes.
     """
 
     def __init__(self, rec, config: MappingConfig, notes):
@@ -384,22 +385,23 @@ class _Logger:
         self.cameras = set()
         self.logged = 0
         self.views = 0
-        self._slot = None
+        self._slots = {}
         self._trail_piece = 0
         viz.log_world_frame(rec, "world")
         self.has_notes = bool(notes)
         if notes:
             viz.log_text(rec, "notes", notes)
 
-    def view_due(self, stamp: float, first_stamp: float) -> bool:
-        """Whether the frame stamped ``stamp`` [s] opens a new view slot: slot k holds the stamps in
-        [k, k + 1) / view_rate_hz after the first frame's; a stamp earlier than the last view's (a source
-        whose clock restarts) opens one too. A millionth of a slot of tolerance keeps frames stamped
-        exactly on the slot boundaries (a 10 Hz camera at 10 Hz views) in their own slots despite rounding."""
+    def view_due(self, key, stamp: float, first_stamp: float) -> bool:
+        """Whether the frame stamped ``stamp`` [s] opens a new view slot of ``key`` (a camera, or None for the
+        map): slot k holds the stamps in [k, k + 1) / view_rate_hz after the run's first frame; a stamp
+        earlier than the last view's (a source whose clock restarts) opens one too. A millionth of a slot of
+        tolerance keeps frames stamped exactly on the slot boundaries (a 10 Hz camera at 10 Hz views) in
+        their own slots despite rounding."""
         slot = math.floor((stamp - first_stamp) * self.config.view_rate_hz + 1e-6)
-        if self._slot is not None and slot == self._slot:
+        if self._slots.get(key) == slot:
             return False
-        self._slot = slot
+        self._slots[key] = slot
         return True
 
     def log(self, i, frame: Frame, T, emap, mapper, stats, score, trail, first_stamp):
@@ -421,23 +423,28 @@ class _Logger:
                       depth_scale=frame.depth_scale, index=frame.index)
         viz.log_scalar(rec, "plots/time/ms_per_frame", stats["total_ms"])
         self.logged += 1
-        if self.view_due(frame.stamp, first_stamp):
-            self._view(emap, mapper, score, trail)
+        if self.view_due(cam, frame.stamp, first_stamp):
+            self._points(cam, mapper.last_points)
+        if self.view_due(None, frame.stamp, first_stamp):
+            self._view(emap, score, trail)
 
-    def _view(self, emap, mapper, score, trail):
+    def _points(self, cam, pts):
         viz, rec = self.viz, self.rec
-        self._trail(trail)
-        pts = mapper.last_points
         if pts is not None and len(pts.pixel):
             k = np.linspace(0, len(pts.pixel) - 1, min(self.config.max_points, len(pts.pixel))).astype(np.int64)
             p = np.asarray(pts.points_map)[k]
-            viz.log_points(rec, "world/points", p, colors=viz.colormap(p[:, 2], *viz.robust_range(p[:, 2])), radii=0.005)
+            viz.log_points(rec, f"world/points/{cam}", p, colors=viz.colormap(p[:, 2], *viz.robust_range(p[:, 2])),
+                           radii=0.005)
             k = k[:: max(1, len(k) // self.config.max_ellipsoids)]
             hc = np.asarray(pts.horizontal_cov)[k]
             cov = np.zeros((len(k), 3, 3))
             cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 0], cov[:, 1, 1] = hc[:, 0], hc[:, 1], hc[:, 1], hc[:, 2]
             cov[:, 2, 2] = np.asarray(pts.height_var)[k]
-            viz.log_covariance_ellipsoids(rec, "world/points_cov", np.asarray(pts.points_map)[k], cov)
+            viz.log_covariance_ellipsoids(rec, f"world/points_cov/{cam}", np.asarray(pts.points_map)[k], cov)
+
+    def _view(self, emap, score, trail):
+        viz, rec = self.viz, self.rec
+        self._trail(trail)
         viz.log_scalar(rec, "plots/cells/known", int(np.isfinite(emap.data[0]).sum()))
         var = emap.data[1][np.isfinite(emap.data[1])]
         if var.size:

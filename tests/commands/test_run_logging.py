@@ -64,8 +64,8 @@ def test_depth_every_frame_views_at_the_stated_rate_and_the_map_is_the_same(tmp_
     assert got["/world/front/depth"]["DepthImage:buffer"] == list(range(12))      # raw depth by default
     assert got["/world/front"]["Transform3D:translation"] == list(range(12))
     assert got["/plots/time/ms_per_frame"]["Scalars:scalars"] == list(range(12))
-    assert got["/world/points"]["Points3D:positions"] == [0, 3, 6, 9]
-    assert got["/world/points_cov"]["Ellipsoids3D:centers"] == [0, 3, 6, 9]
+    assert got["/world/points/front"]["Points3D:positions"] == [0, 3, 6, 9]
+    assert got["/world/points_cov/front"]["Ellipsoids3D:centers"] == [0, 3, 6, 9]
     assert got["/plots/cells/known"]["Scalars:scalars"] == [0, 3, 6, 9]
     assert got["/world/map/elevation"]["Mesh3D:vertex_positions"] == [0, 6, 11]   # every 2nd view, and the end
     # the replay maps the same frames into the same map
@@ -84,7 +84,7 @@ def test_a_view_rate_above_the_frame_rate_logs_every_frame_and_png_depth_replays
     run_mapping(frames, MappingConfig(length_m=3.0, view_rate_hz=1000.0, png_depth=True), rrd_path=path,
                 show_progress=False)
     got = logged_frames(path)
-    assert got["/world/points"]["Points3D:positions"] == list(range(5))
+    assert got["/world/points/front"]["Points3D:positions"] == list(range(5))
     assert got["/world/front/depth"]["EncodedDepthImage:blob"] == list(range(5))
     for f, g in zip(frames, read_rrd_frames(path)):
         np.testing.assert_array_equal(f.depth, g.depth)
@@ -99,7 +99,7 @@ def test_jittered_stamps_give_one_view_per_slot_and_the_trail_has_no_gaps(tmp_pa
     run_mapping(frames, MappingConfig(length_m=3.0, view_rate_hz=5.0), rrd_path=path, show_progress=False)
     got = logged_frames(path)
     # 20 Hz frames, 5 Hz views: slots [0, 0.2), [0.2, 0.4), ... after the first stamp; frame 4 is 4 ms early
-    assert got["/world/points"]["Points3D:positions"] == [0, 5, 8]
+    assert got["/world/points/front"]["Points3D:positions"] == [0, 5, 8]
     strips = []
     for ch in RrdReader(str(path)).stream():
         if ch.entity_path.startswith("/world/trail/"):
@@ -114,11 +114,26 @@ def test_jittered_stamps_give_one_view_per_slot_and_the_trail_has_no_gaps(tmp_pa
     np.testing.assert_allclose(path_xy[:, 0], 0.02 * np.arange(11), atol=1e-6)
 
 
+def test_every_camera_of_a_robot_gets_its_own_views(tmp_path):
+    frames = []
+    for f in floor_frames(6):                      # two cameras, same stamps, interleaved: left first
+        for cam in ("left", "right"):
+            frames.append(Frame(f.depth, f.K, f.depth_scale, f.stamp, T_map_cam=f.T_map_cam, index=f.index,
+                                camera=cam))
+    path = tmp_path / "run.rrd"
+    run_mapping(frames, MappingConfig(length_m=3.0, view_rate_hz=10.0), rrd_path=path, show_progress=False)
+    got = logged_frames(path)
+    assert got["/world/points/left"]["Points3D:positions"] == [0, 6]
+    assert got["/world/points/right"]["Points3D:positions"] == [1, 7]
+    assert got["/plots/cells/known"]["Scalars:scalars"] == [0, 6]
+    assert got["/world/right/depth"]["DepthImage:buffer"] == list(range(1, 12, 2))
+
+
 def test_view_rate_option_and_bad_values(tmp_path, capsys):
     path = tmp_path / "sim.rrd"
     assert main(["run", "sim:stairs", "--frames", "3", "--rrd", str(path), "--view-rate", "5", "--no-progress"]) == 0
     assert "frames/s end to end" in capsys.readouterr().out
-    assert logged_frames(path)["/world/points"]["Points3D:positions"] == [0, 2]      # 10 Hz walk, 5 Hz views
+    assert logged_frames(path)["/world/points/front"]["Points3D:positions"] == [0, 2]      # 10 Hz walk, 5 Hz views
     assert main(["run", "sim:stairs", "--frames", "1", "--view-rate", "0", "--no-progress"]) == 2
     assert "view_rate_hz must be > 0.0" in capsys.readouterr().err
     with pytest.raises(ValueError, match="view_rate_hz"):
