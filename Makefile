@@ -8,9 +8,9 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 # numba compiles each kernel once into its cache (NUMBA_CACHE_DIR when set, as .ci/run does; else __pycache__
 # folders beside the sources) and every later command loads it. `elevmap warmup` fills the cache right after
-# installing; it runs again when a file defining kernels changes (numba recompiles that file's kernels) or for
-# another NUMBA_CACHE_DIR (one stamp per cache).
-KERNEL_SOURCES := $(shell grep -rl --include='*.py' njit noise_model elevmap 2>/dev/null)
+# installing; it runs again when a source file changes (numba recompiles the kernels of a changed file, and a
+# kernel may compile a function written in another file) or for another NUMBA_CACHE_DIR (one stamp per cache).
+KERNEL_SOURCES := $(shell find noise_model elevmap -name '*.py' 2>/dev/null)
 WARM   := $(VENV)/.warm$(subst /,_,$(NUMBA_CACHE_DIR))
 
 .PHONY: demo test bench install warmup system-deps clean
