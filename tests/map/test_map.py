@@ -373,7 +373,7 @@ def test_points_that_scatter_beyond_their_noise_do_not_make_a_cell_confident(rng
     assert ok.layer("variance")[1, 1] == pytest.approx(0.005 ** 2 / 100)
 
 
-def test_removed_scatter_inflation_is_read_with_a_deprecation_warning(tmp_path):
+def test_removed_scatter_inflation_is_read_with_a_warning(tmp_path):
     # an old config or saved map may name it: ignored with a warning; a value of the wrong type is an error
     with pytest.warns(FutureWarning, match="scatter_inflation was removed"):
         p = FusionParams(scatter_inflation=True)
