@@ -79,7 +79,7 @@ def test_numba_and_numpy_mappers_agree(rng):
 def test_pose_uncertainty_makes_the_map_less_confident(rng):
     T = camera_extrinsics((0.0, 0.0, 0.45), 30.0)
     d = floor_depth(T, rng)
-    plain = FusionParams(scatter_inflation=False, spread_alpha=None, min_variance=1e-12,
+    plain = FusionParams(spread_alpha=None, min_variance=1e-12,
                          neighbour_radius=0)                                          # the pose term alone
     sure = Mapper(ElevationMap(4.0, 0.04, fusion_params=plain), [Camera("c", K, W, H)])
     unsure = Mapper(ElevationMap(4.0, 0.04, fusion_params=plain), [Camera("c", K, W, H)])

@@ -444,9 +444,9 @@ def test_the_work_folder_caches_the_walk_and_the_fitted_model(tmp_path):
 def test_settings_switch_fusion_rules_off_for_every_mapper():
     assert parse_settings(None) == {} and parse_settings("") == {}
     s = parse_settings("spread_alpha=none,neighbour_radius=0,visibility_cleanup=false,min_variance=4e-6,"
-                       "bin_at_plane=false,neighbour_estimator=dersimonian_laird,scatter_inflation=false")
+                       "bin_at_plane=false,neighbour_estimator=dersimonian_laird")
     assert s == {"spread_alpha": None, "neighbour_radius": 0, "visibility_cleanup": False, "min_variance": 4e-6,
-                 "bin_at_plane": False, "neighbour_estimator": "dersimonian_laird", "scatter_inflation": False}
+                 "bin_at_plane": False, "neighbour_estimator": "dersimonian_laird"}
     assert isinstance(s["neighbour_radius"], int)
     r = run_compare("stairs", 2, mappers="paper,quadratic", show_progress=False,
                     settings="neighbour_radius=0,visibility_cleanup=false")
@@ -458,7 +458,7 @@ def test_settings_switch_fusion_rules_off_for_every_mapper():
     assert b["mappers"]["paper"]["rmse_m"] != run_compare("stairs", 2, mappers="paper",
                                                            show_progress=False)["mappers"]["paper"]["rmse_m"]
     for bad, msg in (("gate=3", "unknown setting"), ("neighbour_radius", "KEY=VALUE"),
-                     ("scatter_inflation=yes", "true or false"), ("min_points=x", "not a number")):
+                     ("visibility_cleanup=yes", "true or false"), ("min_points=x", "not a number")):
         with pytest.raises(ValueError, match=msg):
             parse_settings(bad)
     with pytest.raises(ValueError, match="neighbour_radius"):
