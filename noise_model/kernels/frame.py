@@ -171,6 +171,7 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
     up = (np.arange(W) - cx) * (1.0 / fx)       # normalised pixel coordinates u' = (u - cx) / fx per column
     vp = (np.arange(H) - cy) * (1.0 / fy)       # ... and v' = (v - cy) / fy per row
     params = model.params_array()
+    family = True if model.family == "disparity" else None     # the family as a type: one compiled loop each
     jump_rel, thr_sig = EDGE_JUMP_REL, EDGE_JUMP_SIGMAS * np.sqrt(2.0)   # the depth-edge threshold's parts
     M, cols = ws.blocks(b)
     gain, eg, eg2, alpha, beta, gamma, mixed = cols
@@ -178,13 +179,13 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
     P = np.zeros((6, 6)) if P is None else P
 
     def surfaces(parts):
-        return (parts, d, scale, zmin, zmax, params, jump_rel, thr_sig, b, M, WINDOW_RADIUS_BLOCKS, NORMAL_MIN_POINTS,
-                DEGENERATE_REL, MIXED_WINDOW_Z, _GH_X, _GH_W, _GRID_X, _GRID_W, ROW_MEDIAN_HALF_PX,
+        return (parts, d, scale, zmin, zmax, params, jump_rel, thr_sig, b, M, WINDOW_RADIUS_BLOCKS,
+                NORMAL_MIN_POINTS, DEGENERATE_REL, MIXED_WINDOW_Z, _GH_X, _GH_W, _GRID_X, _GRID_W, ROW_MEDIAN_HALF_PX,
                 sorting_network(2 * ROW_MEDIAN_HALF_PX + 1), gain, eg, eg2, alpha, beta, gamma, mixed, ws.rowcount,
                 ws.flags, ws.speckle_z, ws.row_median)
 
     def points(parts):
-        return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, NOISE_DEPTH_SIGMAS, b,
+        return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, family, NOISE_DEPTH_SIGMAS, b,
                 bool(bin_at_plane), jump_rel, thr_sig, SURFACE_HALF_ROWS, sorting_network(2 * SURFACE_HALF_ROWS + 1),
                 ws.row_median, gain, eg, eg2, alpha, beta, gamma, mixed, ws.offsets, ws.flags, ws.speckle_z,
                 ws.surface_z, ws.points_map, ws.height_var, ws.horizontal_cov, ws.pixel)

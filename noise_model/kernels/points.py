@@ -21,7 +21,7 @@ __all__: list[str] = []
 
 
 @njit(parallel=True, **JIT)
-def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, noise_sigmas, b,
+def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, family, noise_sigmas, b,
                  bin_at_plane, jump_rel, thr_sig, rows_half, surface_net, rowmed, gain_px, eg_px, eg2_px, alpha_px,
                  beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z, pts, hvar, hcov, pix):
     """Stages 3c and 4 per block row, in one parallel region: those of ``parts`` (SURFACE_MEDIANS, POINTS
@@ -46,6 +46,9 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
         Pose covariance (translation [m^2], rotation [rad^2]), used where ``use_pose``.
     params : ndarray
         SensorModel.params_array.
+    family : None or True
+        None for the paper's family, True for the disparity family: its type, not its value, tells numba
+        which, so each family compiles to a loop without the other's arithmetic (params[7] says the same).
     noise_sigmas : float
         sigma_z is evaluated at the local plane's depth when the pixel lies within this many sigma of it.
     gain_px .. mixed_px : ndarray, shape (nby, W)
@@ -68,7 +71,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
     nby = gain_px.shape[0]
     c0, c1, c2 = params[0], params[1], params[2]
     s_left, s_right = params[5], params[6]
-    disp = params[7] > 0.5
+    disp = family is not None
     R00, R01, R02, R10, R11, R12, R20, R21, R22 = (
         T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
     t0, t1, t2 = T[0, 3], T[1, 3], T[2, 3]
