@@ -171,10 +171,29 @@ def gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw):
 
 
 @njit(**JIT)
+def window_mixed(M, S, by, bx, radius, a, b_, c, mix_z, floor_rel):
+    """Whether the window of block (by, bx), with moments S summed over it and plane
+    w = a u' + b_ v' + c, holds more than one surface: numba version of
+    :func:`noise_model.geometry.mixed_windows` for one block."""
+    nby, nbx = M.shape[0], M.shape[1]
+    between = 0.0
+    dof = 0.0
+    nblocks = 0.0
+    for i in range(max(0, by - radius), min(nby, by + radius + 1)):
+        for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
+            n = M[i, j, 0]
+            if n > 0.0:
+                rs = M[i, j, 3] - a * M[i, j, 1] - b_ * M[i, j, 2] - c * n
+                between += rs * rs / n
+                dof += n - 1.0
+                nblocks += 1.0
+    total = rss(S, S[0], a, b_)
+    return mixed_from_sums(between, max(total - between, 0.0), dof, nblocks, S[0], S[3], mix_z, floor_rel)
+
+
+@njit(**JIT)
 def mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel):
-    """The test of noise_model.geometry.mixed_windows from a window's sums: between = sum_j r_j^2 / n_j over
-    its blocks j with pixels (r_j: the block's residual sum against the window's plane), within = RSS -
-    between, dof = sum_j (n_j - 1), nblocks, and the window's count and sum of 1/z."""
+    """The test of noise_model.geometry.mixed_windows from a window's sums (scalar version)."""
     if nblocks <= 3.0 or dof <= 0.0:
         return True
     mw = swtot / ntot
@@ -220,63 +239,30 @@ def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, par
             for c in range(10):
                 Vs[bx, c] += M[i, bx, c]
     S = np.empty(10)
-    # per block of the row: the plane (fit 1.0 where there is one), the angle's gain and its moments, the
-    # window's RSS, count and sum of 1/z
-    fit = np.zeros(nbx)
-    pa = np.zeros(nbx)
-    pb = np.zeros(nbx)
-    pg = np.full(nbx, np.nan)
-    g = np.zeros(nbx)
-    eg = np.zeros(nbx)
-    eg2 = np.zeros(nbx)
-    res = np.zeros(nbx)
-    ntot = np.zeros(nbx)
-    swtot = np.zeros(nbx)
     for bx in range(nbx):
-        if M[by, bx, 0] > 0.0:          # a block without valid pixels needs no plane
+        g = 0.0
+        eg = 0.0
+        eg2 = 0.0
+        pa = pb = 0.0
+        pg = np.nan
+        mixed = False           # a block without valid pixels has nothing to denoise (the medians skip it)
+        if M[by, bx, 0] > 0.0:
             S[:] = 0.0
             for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
                 for c in range(10):
                     S[c] += Vs[j, c]
-            t, a, b_, c_, ok = plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
-            ts = theta_std_from_moments(S, a, b_, c_) if ok else 0.0
-            if ok:
-                fit[bx] = 1.0
-                pa[bx] = a
-                pb[bx] = b_
-                pg[bx] = c_
-                res[bx] = rss(S, S[0], a, b_)
-                ntot[bx] = S[0]
-                swtot[bx] = S[3]
-            eg[bx], eg2[bx] = gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw)
-            g[bx] = gain_model(min(t, theta_max), ct, disp)
-    # the mixed-window test's sums (noise_model.geometry.mixed_windows) for all blocks of the row at once:
-    # over each window's blocks (rows, then columns, in order), the squared residual of the block's sum of
-    # 1/z against the window's plane per pixel, its degrees of freedom and the blocks with pixels; a loop
-    # over the row's blocks that vectorises (one division per block and window)
-    between = np.zeros(nbx)
-    dof = np.zeros(nbx)
-    nblocks = np.zeros(nbx)
-    for i in range(max(0, by - radius), min(nby, by + radius + 1)):
-        for dj in range(-radius, radius + 1):
-            for bx in range(max(0, -dj), min(nbx, nbx - dj)):
-                n = M[i, bx + dj, 0]
-                rs = M[i, bx + dj, 3] - pa[bx] * M[i, bx + dj, 1] - pb[bx] * M[i, bx + dj, 2] - pg[bx] * n
-                inside = n > 0.0
-                between[bx] += rs * rs / n if inside else 0.0
-                dof[bx] += n - 1.0 if inside else 0.0
-                nblocks[bx] += 1.0 if inside else 0.0
-    for bx in range(nbx):
-        # no valid pixels: not mixed (nothing to denoise, the medians skip it); no plane: mixed
-        mixed = M[by, bx, 0] > 0.0
-        if fit[bx] > 0.0:
-            mixed = mixed_from_sums(between[bx], max(res[bx] - between[bx], 0.0), dof[bx], nblocks[bx], ntot[bx],
-                                    swtot[bx], mix_z, RSS_FLOOR_REL)
+            t, pa, pb, pg, ok = plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
+            ts = theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
+            mixed = window_mixed(M, S, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
+            if not ok:
+                pg = np.nan
+            eg, eg2 = gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw)
+            g = gain_model(min(t, theta_max), ct, disp)
         for u in range(bx * b, min(W, bx * b + b)):
-            gain_px[by, u] = g[bx]
-            eg_px[by, u] = eg[bx]
-            eg2_px[by, u] = eg2[bx]
-            alpha_px[by, u] = pa[bx]
-            beta_px[by, u] = pb[bx]
-            gamma_px[by, u] = pg[bx]
+            gain_px[by, u] = g
+            eg_px[by, u] = eg
+            eg2_px[by, u] = eg2
+            alpha_px[by, u] = pa
+            beta_px[by, u] = pb
+            gamma_px[by, u] = pg
             mixed_px[by, u] = 1.0 if mixed else 0.0
