@@ -198,8 +198,8 @@ def run_warmup(groups=WARMUP_GROUPS, nthreads: int | None = None, out=None) -> d
         Which of :data:`WARMUP_GROUPS` to warm.
     nthreads : int, optional
         numba threads of the work (compiled code does not depend on it).
-    out : file, optional
-        Where the progress lines go (standard output by default); None-like ``False`` for silence.
+    out : file or False, optional
+        Where the progress lines go (standard output by default); ``False``: nowhere.
 
     Returns
     -------
