@@ -83,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--view-rate", type=float, default=None, metavar="HZ",
                        help="with --rrd/--spawn: log the points, trail, map plots and meshes at most HZ times per "
                             "second of the source's time (default 10; every frame's depth and pose are logged)")
+        p.add_argument("--threads", type=int, default=None,
+                       help="numba threads of the mapper (default: all; fewer on a machine busy with other work)")
         p.add_argument("--png-depth", action="store_true",
                        help="with --rrd: log uint16 depth PNG-compressed (smaller files, but too slow to encode for "
                             "848x480 at 30 frames/s)")
@@ -424,6 +426,10 @@ def _cmd_run(args) -> int:
                    inputs=[args.source, args.poses, args.config, args.intrinsics, config.sensor_model or None])
     if args.frames is not None and args.frames < 1:
         raise ValueError("--frames must be >= 1")
+    if args.threads is not None:
+        from noise_model.numba_config import resolve_threads
+
+        resolve_threads(args.threads)                       # a bad count fails before any work
     ros = {k: getattr(args, k, None) for k in ("depth_topic", "map_frame", "base_frame", "bag_out", "map_rate",
                                                "foxglove")}
     if ros["bag_out"]:
@@ -443,7 +449,7 @@ def _cmd_run(args) -> int:
         with src if hasattr(src, "__enter__") else contextlib.nullcontext(src) as frames:
             summary = run_mapping(frames, config, rrd_path=args.rrd, spawn=args.spawn, total=total,
                                   show_progress=not args.no_progress, notes=f"elevmap {args.command} {args.source}",
-                                  callbacks=list(outputs.values()))
+                                  callbacks=list(outputs.values()), nthreads=args.threads)
         for name, out in outputs.items():
             summary[name] = out.finish(summary["map"])
     except BaseException:

@@ -136,5 +136,8 @@ def test_view_rate_option_and_bad_values(tmp_path, capsys):
     assert logged_frames(path)["/world/points/front"]["Points3D:positions"] == [0, 2]      # 10 Hz walk, 5 Hz views
     assert main(["run", "sim:stairs", "--frames", "1", "--view-rate", "0", "--no-progress"]) == 2
     assert "view_rate_hz must be > 0.0" in capsys.readouterr().err
+    assert main(["run", "sim:stairs", "--frames", "1", "--threads", "0", "--no-progress"]) == 2
+    assert "nthreads must be in [1," in capsys.readouterr().err
+    assert main(["run", "sim:stairs", "--frames", "1", "--threads", "1", "--no-progress"]) == 0
     with pytest.raises(ValueError, match="view_rate_hz"):
         MappingConfig(view_rate_hz=float("inf"))
