@@ -29,7 +29,8 @@ def main() -> None:
     except ValueError as exc:
         raise SystemExit(str(exc)) from None
     src = SimulatedWalk("stairs", n_frames=args.frames, seed=args.seed)
-    config = MappingConfig(length_m=6.0, resolution_m=0.04, mesh_every=1000, max_points=800, max_ellipsoids=60)
+    config = MappingConfig(length_m=6.0, resolution_m=0.04, mesh_every=1000, max_points=800, max_ellipsoids=60,
+                           png_depth=True)
     summary = run_mapping(src, config, rrd_path=args.out, total=len(src), application_id="elevmap_stairs_walk",
                           notes="A simulated D435 (424x240, 10 Hz) walking up six 0.17 m steps, paper noise.")
     err = summary["error"]

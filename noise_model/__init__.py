@@ -13,7 +13,7 @@ row_medians                             per pixel, the median depth of its agree
 surface_depths                          median of agreeing row medians over 5 rows (binning; variance floor)
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
-depth_to_map_points                     the whole chain in one numba pass (+ NumPy reference)
+depth_to_map_points                     the whole chain in six numba stages, three parallel regions (+ NumPy reference)
 Scene, render_depth, add_noise          scenes of primitives, numba ray casting, the reference noise
 walk, odometry_drift, simulate_walk     trajectories, odometry drift, simulated walks (noise_model.sim.walks)
 alternatives                            other point-noise models for comparisons: constant, quadratic

@@ -378,7 +378,8 @@ def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None
             trail.append(f.T_map_cam[:2, 3])
             yield f
 
-    summary = run_mapping(frames(), MappingConfig(), rrd_path=path, spawn=spawn, total=len(src),
+    # the demo's recording is kept and its frames are few: PNG depth keeps the file small at no cost to real time
+    summary = run_mapping(frames(), MappingConfig(png_depth=True), rrd_path=path, spawn=spawn, total=len(src),
                           show_progress=show_progress, application_id="elevmap_demo", notes=notes)
     summary["scene"] = "demo: box field then stairs"
     summary["png"] = None

@@ -20,10 +20,15 @@ def test_bench_writes_one_record_per_kernel_size_and_implementation(tmp_path, ca
                     ("move_to", 200, 200, "numpy"), ("height_scan", 395, 1, "numba"), ("height_scan", 395, 1, "numpy")}
     for r in report["results"]:
         assert r["median_ms"] > 0 and r["points_per_s"] > 0
+    from noise_model.kernels import STAGES
+
     for r in report["results"]:
         if r["name"] == "noise":
             assert r["points"] > 0.9 * r["width"] * r["height"] * 0.5
-    assert "speed-up" in capsys.readouterr().out
+        if r["name"] == "noise" and r["impl"] == "numba":     # each stage of the kernel timed alone
+            assert set(r["stages"]) == set(STAGES) and all(t > 0 for t in r["stages"].values())
+    printed = capsys.readouterr().out
+    assert "speed-up" in printed and "stages alone" in printed
     assert [p.name for p in tmp_path.iterdir()] == ["bench.json"]
 
 
