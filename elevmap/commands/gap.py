@@ -281,12 +281,12 @@ def format_summary(report: dict, top: int = 8) -> str:
             out.append(f"    best {rnd['chosen']}: held-out gap {rnd['gap_heldout_before']:.3g} -> "
                        f"{t['gap_heldout_after']:.3g}, smaller in {100 * t['fraction']:.0f} % of the bootstrap "
                        f"replicates: {verdict}")
-        for b in rnd.get("backfit", []):
-            if b.get("kept"):
-                out.append(f"    refitted {b['name']}({_params_text(b['params'])}) on top of the others: held-out gap "
-                           f"{b['gap_heldout_before']:.3g} -> {b['gap_heldout_after']:.3g}")
+        for bf in rnd.get("backfit", []):
+            if bf.get("kept"):
+                out.append(f"    refitted {bf['name']}({_params_text(bf['params'])}) on top of the others: held-out "
+                           f"gap {bf['gap_heldout_before']:.3g} -> {bf['gap_heldout_after']:.3g}")
             else:
-                out.append(f"    refit of {b['name']} not kept ({b.get('why') or b.get('error', '')})")
+                out.append(f"    refit of {bf['name']} not kept ({bf.get('why') or bf.get('error', '')})")
     for e in report["effects"]:
         a = e.get("ablation", {})
         conf = "confirmed" if a.get("confirmed") else "NOT confirmed"
