@@ -12,14 +12,25 @@ Thread counts are passed into every parallel entry point as ``nthreads`` and app
 :func:`threads`, which restores numba's previous setting afterwards. Parallel kernels split their work
 so that every output element is written by one thread in a fixed order: results are bit-identical
 whatever the thread count.
+
+OpenMP's threads wait passively (``OMP_WAIT_POLICY=PASSIVE`` unless the user's environment sets it): a
+kernel's threads meet at a barrier after each parallel region, and with OpenMP's default spinning a thread
+that waits for a partner descheduled by any other busy process burns its own time slice too, so a frame
+costs whole time slices per region on a machine that also runs a robot's other software. Passive waiting
+costs a thread wake-up per region on an idle machine. The variable is read when the OpenMP runtime loads
+(numba's first parallel launch), so it is set here, before any kernel runs; a program that loaded OpenMP
+earlier keeps its own policy. docs/noise-model.md gives the measured cost and gain.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 
-import numba
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402  (after the wait policy, which OpenMP reads once when numba loads it)
 
 __all__ = ["FASTMATH", "JIT", "THREADSAFE_LAYERS", "layer_is_threadsafe", "resolve_threads", "threads"]
 

@@ -53,3 +53,19 @@ def test_compiled_formulas_equal_the_numpy_ones():
                         (reduced_chi2_quantile, (1.0 + 100 * s, 3.09)),
                         (dersimonian_laird_tau2, (z - 1.0, 3.0 + t, 2.0 + s))):
             assert compiled[f](*args) == pytest.approx(f(*args), rel=1e-14, abs=0.0)
+
+
+def test_openmp_waits_passively_unless_the_user_chose_a_policy():
+    """Spinning OpenMP threads lose whole time slices at every barrier on a busy robot computer; the policy
+    must be in the environment before numba loads OpenMP, and a user's own choice wins."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import os; from noise_model import numba_config; print(os.environ['OMP_WAIT_POLICY'])"
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "PASSIVE"
+    out = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_WAIT_POLICY": "ACTIVE"},
+                         capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "ACTIVE"
