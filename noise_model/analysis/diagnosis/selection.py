@@ -6,8 +6,9 @@ effect is fitted on the fit captures and simulated (common random numbers: each 
 is the same in every model), the one that lowers the fit gap most is added if it shrinks the held-out
 gap significantly (paired bootstrap over frames, :func:`.floor.shrink_test`: at least 1 - alpha of the
 replicates shrink) and materially (by at least ``min_shrink`` of the held-out gap left before its round,
-and by more than the 95th percentile of real-vs-real aggregate gaps); repeat while the remaining gap is
-significant. Ablation then removes each selected effect again and reports whether the
+and by more than the 95th percentile of real-vs-real aggregate gaps); after each accepted effect from
+the second on, the effects selected before it are fitted again on top of all the others (backfitting);
+repeat while the remaining gap is significant. Ablation then removes each selected effect again and reports whether the
 held-out gap grows significantly (confirmed) or not.
 
 An effect is a (name, params) pair; a model is the reference simulation plus a list of effects.
