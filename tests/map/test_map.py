@@ -277,6 +277,24 @@ def test_bad_inputs_name_the_problem():
         FusionParams(min_variance=1.0, max_variance=0.1)
 
 
+
+@pytest.mark.parametrize("impl", ["numba", "numpy"])
+@pytest.mark.parametrize("bad", [(0, -1e-9), (0, np.inf), (1, -np.inf), (1, np.nan), (2, np.nan), (2, -np.inf)])
+@pytest.mark.parametrize("xy", [(0.5, 0.5), (50.0, -70.0)])
+def test_a_bad_horizontal_covariance_is_refused_inside_or_outside_the_window(impl, bad, xy):
+    m = small_map()
+    pts = np.array([[0.2, 0.3, 1.0], [xy[0], xy[1], 2.0], [1.5, -0.5, 0.0]])
+    hcov = np.full((3, 3), 1e-3)
+    m.update(pts, np.ones(3), horizontal_cov=hcov, impl=impl)
+    before = m.data.copy()
+    hcov[1, bad[0]] = bad[1]
+    with pytest.raises(ValueError, match="horizontal_cov must be finite with non-negative variances"):
+        m.update(pts, np.ones(3), stamp=1.0, horizontal_cov=hcov, impl=impl)
+    np.testing.assert_array_equal(m.data, before)
+    hcov[1, bad[0]] = -1e-9 if bad[0] == 1 else 0.0        # a negative covariance or zero variances are valid
+    m.update(pts, np.ones(3), stamp=1.0, horizontal_cov=hcov, impl=impl)
+
+
 finite = st.floats(-3.0, 3.0, allow_nan=False)
 
 
