@@ -513,6 +513,38 @@ def test_seed_summary_and_criteria_by_hand():
     assert "coverage_2sigma, coverage_1sigma, lowest_nll missed" in table
 
 
+
+def test_seed_summary_of_the_rmse_on_the_cells_every_mapper_knows():
+    """The summary takes common_rmse_m from each run's common scores; its criterion is reported beside the
+    verdict, which stays the one on each mapper's own cells."""
+    from elevmap.commands.compare_seeds import SUMMARY_KEYS, criteria, format_seeds_table, summarise
+
+    def run(own_a, own_b, common_a, common_b):
+        base = {k: 0.5 for k in SUMMARY_KEYS if k != "common_rmse_m"}
+        return {"mappers": {"a": {**base, "rmse_m": own_a, "nll": -2.0, "coverage_1sigma": 0.70,
+                                  "coverage_2sigma": 0.95},
+                            "b": {**base, "rmse_m": own_b, "nll": -1.0, "coverage_1sigma": 0.70,
+                                  "coverage_2sigma": 0.95}},
+                "common": {"cells": 10, "mappers": {"a": {"rmse_m": common_a}, "b": {"rmse_m": common_b}}}}
+
+    # a knows fewer, harder cells: +10 % on its own cells, +4 % on the cells both know
+    runs = [run(0.055, 0.050, 0.052, 0.050), run(0.044, 0.040, 0.0416, 0.040), run(0.066, 0.060, 0.0624, 0.060)]
+    s = summarise(runs)
+    assert s["a"]["common_rmse_m"]["values"] == [0.052, 0.0416, 0.0624]
+    assert s["a"]["common_rmse_m"]["median"] == 0.052
+    c = criteria(s)
+    assert not c["a"]["rmse_within_5pct"] and c["a"]["rmse_vs_best"] == pytest.approx(0.1)
+    assert c["a"]["common_rmse_within_5pct"] and c["a"]["common_rmse_vs_best"] == pytest.approx(0.04)
+    assert not c["a"]["all"]                                            # the verdict is on the own cells
+    assert c["b"]["common_rmse_vs_best"] == 0.0
+    table = format_seeds_table({"scene": "stairs", "seeds": [0, 1, 2], "frames": [113] * 3, "width": 424,
+                                "height": 240, "reality": "stereo", "preset": "default", "summary": s, "criteria": c})
+    assert "52.0 [41.6, 62.4]" in table and "rmse_within_5pct missed" in table
+    # a run without common scores (a single mapper knows no cells in common with none): NaN, no criterion met
+    lone = summarise([{"mappers": {"a": {k: 0.5 for k in SUMMARY_KEYS if k != "common_rmse_m"}}}])
+    assert math.isnan(lone["a"]["common_rmse_m"]["median"])
+    assert not criteria(lone)["a"]["common_rmse_within_5pct"]
+
 def test_seeds_run_each_seed_and_the_cli(tmp_path, capsys):
     out = tmp_path / "r.json"
     assert main(["compare", "--scene", "boxes", "--frames", "2", "--seeds", "2", "--seed", "3", "--mappers",
