@@ -236,12 +236,18 @@ def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, par
     nby, nbx = M.shape[0], M.shape[1]
     ct, theta_max = params[3], params[4]
     disp = params[7] > 0.5
-    Vs = np.zeros((nbx, 10))
+    Vs = np.zeros(nbx * 10)         # (nbx, 10) flat: the moments summed over the window's block rows
     for i in range(max(0, by - radius), min(nby, by + radius + 1)):
-        for bx in range(nbx):
-            for c in range(10):
-                Vs[bx, c] += M[i, bx, c]
-    S = np.empty(10)
+        Mi = M[i].ravel()
+        for k in range(nbx * 10):
+            Vs[k] += Mi[k]
+    Sw = np.zeros(nbx * 10)         # ... and over its block columns, each window's blocks in ascending order
+    for dj in range(-radius, radius + 1):
+        lo, hi = max(0, -dj), min(nbx, nbx - dj)
+        src = Vs[(lo + dj) * 10:(hi + dj) * 10]
+        dst = Sw[lo * 10:hi * 10]
+        for k in range((hi - lo) * 10):
+            dst[k] += src[k]
     t_b = np.zeros(nbx)             # per window: theta [rad], its standard deviation [rad], which rule
     ts_b = np.zeros(nbx)
     grid_b = np.zeros(nbx, dtype=np.bool_)
@@ -256,10 +262,7 @@ def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, par
     sw_b = np.zeros(nbx)
     for bx in range(nbx):
         if M[by, bx, 0] > 0.0:
-            S[:] = 0.0
-            for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
-                for c in range(10):
-                    S[c] += Vs[j, c]
+            S = Sw[bx * 10:bx * 10 + 10]
             t, pa, pb, pg, ok = plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
             ts = theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
             t_b[bx] = t
