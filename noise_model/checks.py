@@ -167,16 +167,23 @@ def check_transform(T, name: str = "T_map_cam", *, tol: float = 1e-6) -> np.ndar
     if not np.issubdtype(a.dtype, np.number) or np.issubdtype(a.dtype, np.complexfloating):
         raise ValueError(f"{name} must be real numbers, got dtype {a.dtype}")
     a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
+    # on the 16 entries as Python floats: NumPy's per-call overhead on a 4x4 is larger than the arithmetic,
+    # and this check runs on every frame
+    (r00, r01, r02, _), (r10, r11, r12, _), (r20, r21, r22, _), bottom = rows = a.tolist()
+    if not all(math.isfinite(x) for row in rows for x in row):
         raise ValueError(f"{name} has non-finite entries")
-    if not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0], atol=tol):
-        raise ValueError(f"{name} bottom row must be [0, 0, 0, 1], got {a[3].tolist()}")
-    R = a[:3, :3]
-    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    # np.allclose(bottom, [0, 0, 0, 1], atol=tol): |x - y| <= tol + 1e-5 |y|
+    if not (abs(bottom[0]) <= tol and abs(bottom[1]) <= tol and abs(bottom[2]) <= tol
+            and abs(bottom[3] - 1.0) <= tol + 1e-5):
+        raise ValueError(f"{name} bottom row must be [0, 0, 0, 1], got {bottom}")
+    err = max(abs(r00 * r00 + r01 * r01 + r02 * r02 - 1.0), abs(r10 * r10 + r11 * r11 + r12 * r12 - 1.0),
+              abs(r20 * r20 + r21 * r21 + r22 * r22 - 1.0), abs(r00 * r10 + r01 * r11 + r02 * r12),
+              abs(r00 * r20 + r01 * r21 + r02 * r22), abs(r10 * r20 + r11 * r21 + r12 * r22))    # max |R R^T - I|
     if err > tol:
         raise ValueError(f"{name} rotation part is not orthonormal (max |R R^T - I| = {err:.2e})")
-    if np.linalg.det(R) < 0:
-        raise ValueError(f"{name} rotation part is a reflection (det = {np.linalg.det(R):.3f}), not a rotation")
+    det = r00 * (r11 * r22 - r12 * r21) - r01 * (r10 * r22 - r12 * r20) + r02 * (r10 * r21 - r11 * r20)
+    if det < 0:
+        raise ValueError(f"{name} rotation part is a reflection (det = {det:.3f}), not a rotation")
     return a
 
 
@@ -211,14 +218,20 @@ def check_pose_cov(C, name: str = "pose_cov", *, tol: float = 1e-9) -> np.ndarra
     if not np.issubdtype(a.dtype, np.number) or np.issubdtype(a.dtype, np.complexfloating):
         raise ValueError(f"{name} must be real numbers, got dtype {a.dtype}")
     a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
+    top = float(np.abs(a).max())            # NaN or inf when any entry is
+    if not math.isfinite(top):
         raise ValueError(f"{name} has non-finite entries")
-    scale = max(float(np.abs(a).max()), 1e-300)
+    scale = max(top, 1e-300)
     asym = float(np.abs(a - a.T).max())
     if asym > tol * scale:
         raise ValueError(f"{name} is not symmetric (max |C - C^T| = {asym:.3e})")
     a = 0.5 * (a + a.T)
-    wmin = float(np.linalg.eigvalsh(a).min())
+    # a diagonal covariance (the common case; checked on every frame) has its diagonal as eigenvalues:
+    # the 30 off-diagonal entries are the first six of each row of the entries after C[0, 0] taken 7 at a time
+    if a.ravel()[1:].reshape(5, 7)[:, :6].any():
+        wmin = float(np.linalg.eigvalsh(a).min())
+    else:
+        wmin = float(a.diagonal().min())
     if wmin < -tol * scale:
         raise ValueError(f"{name} is not positive semi-definite (smallest eigenvalue {wmin:.3e})")
     return a

@@ -146,6 +146,54 @@ def test_bad_inputs_name_what_is_wrong(rng):
         to_map_frame(np.repeat(C, 2, axis=0), p, T)
 
 
+def test_per_frame_checks_decide_as_the_eigen_decomposition_and_the_matrix_product(rng):
+    from noise_model.checks import check_pose_cov, check_transform
+    # pose covariances: accepted exactly when the smallest eigenvalue is >= -1e-9 of the largest entry,
+    # diagonal ones (decided from the diagonal) and full ones alike
+    for k in range(200):
+        d = rng.uniform(-1e-3, 1e-2, 6) if k % 2 else rng.uniform(0.0, 1e-2, 6)
+        Q = Rotation.random(random_state=k).as_matrix()
+        C = np.diag(d) if k % 4 < 2 else np.kron(np.eye(2), Q) @ np.diag(d) @ np.kron(np.eye(2), Q).T
+        C = 0.5 * (C + C.T)
+        psd = np.linalg.eigvalsh(C).min() >= -1e-9 * np.abs(C).max()
+        if psd:
+            np.testing.assert_array_equal(check_pose_cov(C), C)
+        else:
+            with pytest.raises(ValueError, match="pose_cov is not positive semi-definite"):
+                check_pose_cov(C)
+    np.testing.assert_array_equal(check_pose_cov(np.zeros((6, 6))), np.zeros((6, 6)))
+    C = np.diag([1e-4] * 6)
+    C[5, 0] = C[0, 5] = 2e-4                 # one off-diagonal pair: eigenvalues 1e-4 +- 2e-4
+    with pytest.raises(ValueError, match=r"smallest eigenvalue -1.000e-04"):
+        check_pose_cov(C)
+    with pytest.raises(ValueError, match="non-finite"):
+        check_pose_cov(np.diag([1.0, 1.0, 1.0, 1.0, 1.0, np.inf]))
+    # transforms: max |R R^T - I| against the 1e-6 tolerance, det, the bottom row as np.allclose
+    for k in range(50):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.random(random_state=k).as_matrix()
+        T[:3, 3] = rng.normal(size=3)
+        np.testing.assert_array_equal(check_transform(T), T)
+        E = T.copy()
+        E[:3, :3] *= 1.0 + 2e-6 * (k + 1)
+        with pytest.raises(ValueError, match="not orthonormal"):
+            check_transform(E)
+    T = np.eye(4)
+    T[3, 3] = 1.0 + 1e-5                      # within np.allclose's relative part
+    check_transform(T)
+    T[3, 3] = 1.0 + 2e-5
+    with pytest.raises(ValueError, match=r"bottom row must be \[0, 0, 0, 1\]"):
+        check_transform(T)
+    T = np.eye(4)
+    T[3, 0] = 2e-6
+    with pytest.raises(ValueError, match="bottom row"):
+        check_transform(T)
+    T = np.eye(4)
+    T[1, 3] = np.nan
+    with pytest.raises(ValueError, match="T_map_cam has non-finite entries"):
+        check_transform(T)
+
+
 def test_stacks_of_transforms_are_validated_naming_the_bad_one(rng):
     from noise_model import check_transforms
 
