@@ -154,44 +154,6 @@ def theta_std_from_moments(S, alpha, beta, gamma):
 
 
 @njit(**JIT)
-def gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw):
-    """(E[g], E[g^2]) of the angle gain of the model's family for theta ~ N(t, ts^2): the Gauss-Hermite nodes
-    hx, weights hw where t +- 4 ts lies inside (0, theta_max), else the grid gx, gw (THETA_QUADRATURE,
-    THETA_GRID)."""
-    if not (t - 4.0 * ts > 0.0 and t + 4.0 * ts < theta_max):
-        hx = gx
-        hw = gw
-    eg = 0.0
-    eg2 = 0.0
-    for k in range(hx.shape[0]):
-        g = gain_model(min(abs(t + ts * hx[k]), theta_max), ct, disp)
-        eg = eg + hw[k] * g
-        eg2 = eg2 + hw[k] * (g * g)
-    return eg, eg2
-
-
-@njit(**JIT)
-def window_mixed(M, S, by, bx, radius, a, b_, c, mix_z, floor_rel):
-    """Whether the window of block (by, bx), with moments S summed over it and plane
-    w = a u' + b_ v' + c, holds more than one surface: numba version of
-    :func:`noise_model.geometry.mixed_windows` for one block."""
-    nby, nbx = M.shape[0], M.shape[1]
-    between = 0.0
-    dof = 0.0
-    nblocks = 0.0
-    for i in range(max(0, by - radius), min(nby, by + radius + 1)):
-        for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
-            n = M[i, j, 0]
-            if n > 0.0:
-                rs = M[i, j, 3] - a * M[i, j, 1] - b_ * M[i, j, 2] - c * n
-                between += rs * rs / n
-                dof += n - 1.0
-                nblocks += 1.0
-    total = rss(S, S[0], a, b_)
-    return mixed_from_sums(between, max(total - between, 0.0), dof, nblocks, S[0], S[3], mix_z, floor_rel)
-
-
-@njit(**JIT)
 def mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel):
     """The test of noise_model.geometry.mixed_windows from a window's sums (scalar version)."""
     if nblocks <= 3.0 or dof <= 0.0:
@@ -231,7 +193,9 @@ def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, par
     without valid pixels needs no plane. The angle's quadrature runs node by node across the block row's
     windows (one window per SIMD lane): each window sums its own rule's nodes in order, the 9-node rule
     padded to the grid's length with weight-0 nodes, which add exactly 0 (the gain is finite at every
-    capped angle), so each window's sums are those of :func:`gain_moments`.
+    capped angle), so each window's sums are those of :func:`noise_model.axial_variance`: the
+    9-node rule where theta +- 4 s_theta lies inside (0, theta_max), else the grid (THETA_QUADRATURE,
+    THETA_GRID).
     """
     nby, nbx = M.shape[0], M.shape[1]
     ct, theta_max = params[3], params[4]
@@ -267,7 +231,7 @@ def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, par
             ts = theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
             t_b[bx] = t
             ts_b[bx] = ts
-            grid_b[bx] = not (t - 4.0 * ts > 0.0 and t + 4.0 * ts < theta_max)     # as gain_moments
+            grid_b[bx] = not (t - 4.0 * ts > 0.0 and t + 4.0 * ts < theta_max)     # the gain has a kink there
             pa_b[bx] = pa
             pb_b[bx] = pb
             pg_b[bx] = pg if ok else np.nan
@@ -276,8 +240,8 @@ def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, par
             total_b[bx] = rss(S, S[0], pa, pb) if ok else 0.0
             n_b[bx] = S[0]
             sw_b[bx] = S[3]
-    # the mixed test's between-block sums, block by block of the window across the row (window_mixed's
-    # terms in its order; a block without valid pixels adds exactly 0)
+    # the mixed test's between-block sums, block by block of the window across the row (the terms of
+    # noise_model.geometry.mixed_windows in its order; a block without valid pixels adds exactly 0)
     between_b = np.zeros(nbx)
     dof_b = np.zeros(nbx)
     nblocks_b = np.zeros(nbx)
