@@ -154,6 +154,44 @@ def theta_std_from_moments(S, alpha, beta, gamma):
 
 
 @njit(**JIT)
+def gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw):
+    """(E[g], E[g^2]) of the angle gain of the model's family for theta ~ N(t, ts^2): the Gauss-Hermite nodes
+    hx, weights hw where t +- 4 ts lies inside (0, theta_max), else the grid gx, gw (THETA_QUADRATURE,
+    THETA_GRID)."""
+    if not (t - 4.0 * ts > 0.0 and t + 4.0 * ts < theta_max):
+        hx = gx
+        hw = gw
+    eg = 0.0
+    eg2 = 0.0
+    for k in range(hx.shape[0]):
+        g = gain_model(min(abs(t + ts * hx[k]), theta_max), ct, disp)
+        eg = eg + hw[k] * g
+        eg2 = eg2 + hw[k] * (g * g)
+    return eg, eg2
+
+
+@njit(**JIT)
+def window_mixed(M, S, by, bx, radius, a, b_, c, mix_z, floor_rel):
+    """Whether the window of block (by, bx), with moments S summed over it and plane
+    w = a u' + b_ v' + c, holds more than one surface: numba version of
+    :func:`noise_model.geometry.mixed_windows` for one block."""
+    nby, nbx = M.shape[0], M.shape[1]
+    between = 0.0
+    dof = 0.0
+    nblocks = 0.0
+    for i in range(max(0, by - radius), min(nby, by + radius + 1)):
+        for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
+            n = M[i, j, 0]
+            if n > 0.0:
+                rs = M[i, j, 3] - a * M[i, j, 1] - b_ * M[i, j, 2] - c * n
+                between += rs * rs / n
+                dof += n - 1.0
+                nblocks += 1.0
+    total = rss(S, S[0], a, b_)
+    return mixed_from_sums(between, max(total - between, 0.0), dof, nblocks, S[0], S[3], mix_z, floor_rel)
+
+
+@njit(**JIT)
 def mixed_from_sums(between, within, dof, nblocks, ntot, swtot, mix_z, floor_rel):
     """The test of noise_model.geometry.mixed_windows from a window's sums (scalar version)."""
     if nblocks <= 3.0 or dof <= 0.0:
@@ -190,119 +228,41 @@ def planes_block_row(by, M, b, W, radius, min_points, degenerate_rel, mix_z, par
         without valid pixels.
 
     The window sum is separable: over the block rows first (Vs), then over the block columns. A block
-    without valid pixels needs no plane. The angle's quadrature runs node by node across the block row's
-    windows (one window per SIMD lane): each window sums its own rule's nodes in order, the 9-node rule
-    padded to the grid's length with weight-0 nodes, which add exactly 0 (the gain is finite at every
-    capped angle), so each window's sums are those of :func:`noise_model.axial_variance`: the
-    9-node rule where theta +- 4 s_theta lies inside (0, theta_max), else the grid (THETA_QUADRATURE,
-    THETA_GRID).
+    without valid pixels needs no plane.
     """
     nby, nbx = M.shape[0], M.shape[1]
     ct, theta_max = params[3], params[4]
     disp = params[7] > 0.5
-    Vs = np.zeros(nbx * 10)         # (nbx, 10) flat: the moments summed over the window's block rows
+    Vs = np.zeros((nbx, 10))
     for i in range(max(0, by - radius), min(nby, by + radius + 1)):
-        Mi = M[i].ravel()
-        for k in range(nbx * 10):
-            Vs[k] += Mi[k]
-    Sw = np.zeros(nbx * 10)         # ... and over its block columns, each window's blocks in ascending order
-    for dj in range(-radius, radius + 1):
-        lo, hi = max(0, -dj), min(nbx, nbx - dj)
-        src = Vs[(lo + dj) * 10:(hi + dj) * 10]
-        dst = Sw[lo * 10:hi * 10]
-        for k in range((hi - lo) * 10):
-            dst[k] += src[k]
-    t_b = np.zeros(nbx)             # per window: theta [rad], its standard deviation [rad], which rule
-    ts_b = np.zeros(nbx)
-    grid_b = np.zeros(nbx, dtype=np.bool_)
-    pa_b = np.zeros(nbx)
-    pb_b = np.zeros(nbx)
-    pg_b = np.full(nbx, np.nan)
-    mixed_b = np.zeros(nbx)         # a block without valid pixels has nothing to denoise (the medians skip it)
-    fit_b = np.zeros(nbx, dtype=np.bool_)
-    c_b = np.zeros(nbx)             # gamma of the fit (0 where none), total RSS, n and sum w of the window
-    total_b = np.zeros(nbx)
-    n_b = np.zeros(nbx)
-    sw_b = np.zeros(nbx)
+        for bx in range(nbx):
+            for c in range(10):
+                Vs[bx, c] += M[i, bx, c]
+    S = np.empty(10)
     for bx in range(nbx):
+        g = 0.0
+        eg = 0.0
+        eg2 = 0.0
+        pa = pb = 0.0
+        pg = np.nan
+        mixed = False           # a block without valid pixels has nothing to denoise (the medians skip it)
         if M[by, bx, 0] > 0.0:
-            S = Sw[bx * 10:bx * 10 + 10]
+            S[:] = 0.0
+            for j in range(max(0, bx - radius), min(nbx, bx + radius + 1)):
+                for c in range(10):
+                    S[c] += Vs[j, c]
             t, pa, pb, pg, ok = plane_from_inverse_depth_moments(S, min_points, degenerate_rel)
             ts = theta_std_from_moments(S, pa, pb, pg) if ok else 0.0
-            t_b[bx] = t
-            ts_b[bx] = ts
-            grid_b[bx] = not (t - 4.0 * ts > 0.0 and t + 4.0 * ts < theta_max)     # the gain has a kink there
-            pa_b[bx] = pa
-            pb_b[bx] = pb
-            pg_b[bx] = pg if ok else np.nan
-            fit_b[bx] = ok
-            c_b[bx] = pg
-            total_b[bx] = rss(S, S[0], pa, pb) if ok else 0.0
-            n_b[bx] = S[0]
-            sw_b[bx] = S[3]
-    # the mixed test's between-block sums, block by block of the window across the row (the terms of
-    # noise_model.geometry.mixed_windows in its order; a block without valid pixels adds exactly 0)
-    between_b = np.zeros(nbx)
-    dof_b = np.zeros(nbx)
-    nblocks_b = np.zeros(nbx)
-    Mn = np.empty(nbx)              # the block row's n, su, sv, sw contiguous, so that the loop vectorises
-    Mu = np.empty(nbx)
-    Mv = np.empty(nbx)
-    Mw = np.empty(nbx)
-    for i in range(max(0, by - radius), min(nby, by + radius + 1)):
-        for bx in range(nbx):
-            Mn[bx] = M[i, bx, 0]
-            Mu[bx] = M[i, bx, 1]
-            Mv[bx] = M[i, bx, 2]
-            Mw[bx] = M[i, bx, 3]
-        for dj in range(-radius, radius + 1):
-            lo, hi = max(0, -dj), min(nbx, nbx - dj)      # windows bx whose block bx + dj is in the image
-            n_j, u_j, v_j, w_j = Mn[lo + dj:hi + dj], Mu[lo + dj:hi + dj], Mv[lo + dj:hi + dj], Mw[lo + dj:hi + dj]
-            a_w, b_w, c_w = pa_b[lo:hi], pb_b[lo:hi], c_b[lo:hi]
-            bet_w, dof_w, nbl_w = between_b[lo:hi], dof_b[lo:hi], nblocks_b[lo:hi]
-            for k in range(hi - lo):
-                n = n_j[k]
-                has = n > 0.0
-                rs = w_j[k] - a_w[k] * u_j[k] - b_w[k] * v_j[k] - c_w[k] * n
-                q = rs * rs / (n if has else 1.0)
-                bet_w[k] += q if has else 0.0
-                dof_w[k] += n - 1.0 if has else 0.0
-                nbl_w[k] += 1.0 if has else 0.0
-    for bx in range(nbx):
-        if M[by, bx, 0] > 0.0:
-            mixed = True
-            if fit_b[bx]:
-                mixed = mixed_from_sums(between_b[bx], max(total_b[bx] - between_b[bx], 0.0), dof_b[bx],
-                                        nblocks_b[bx], n_b[bx], sw_b[bx], mix_z, RSS_FLOOR_REL)
-            mixed_b[bx] = 1.0 if mixed else 0.0
-    nk = max(gx.shape[0], hx.shape[0])
-    hxp = np.zeros(nk)
-    hwp = np.zeros(nk)
-    gxp = np.zeros(nk)
-    gwp = np.zeros(nk)
-    hxp[:hx.shape[0]] = hx
-    hwp[:hx.shape[0]] = hw
-    gxp[:gx.shape[0]] = gx
-    gwp[:gx.shape[0]] = gw
-    eg_b = np.zeros(nbx)
-    eg2_b = np.zeros(nbx)
-    for k in range(nk):
-        for bx in range(nbx):
-            x = gxp[k] if grid_b[bx] else hxp[k]
-            w = gwp[k] if grid_b[bx] else hwp[k]
-            g = gain_model(min(abs(t_b[bx] + ts_b[bx] * x), theta_max), ct, disp)
-            eg_b[bx] = eg_b[bx] + w * g
-            eg2_b[bx] = eg2_b[bx] + w * (g * g)
-    for bx in range(nbx):
-        valid = M[by, bx, 0] > 0.0
-        g = gain_model(min(t_b[bx], theta_max), ct, disp) if valid else 0.0
-        eg = eg_b[bx] if valid else 0.0
-        eg2 = eg2_b[bx] if valid else 0.0
+            mixed = window_mixed(M, S, by, bx, radius, pa, pb, pg, mix_z, RSS_FLOOR_REL) if ok else True
+            if not ok:
+                pg = np.nan
+            eg, eg2 = gain_moments(t, ts, ct, theta_max, disp, hx, hw, gx, gw)
+            g = gain_model(min(t, theta_max), ct, disp)
         for u in range(bx * b, min(W, bx * b + b)):
             gain_px[by, u] = g
             eg_px[by, u] = eg
             eg2_px[by, u] = eg2
-            alpha_px[by, u] = pa_b[bx]
-            beta_px[by, u] = pb_b[bx]
-            gamma_px[by, u] = pg_b[bx]
-            mixed_px[by, u] = mixed_b[bx]
+            alpha_px[by, u] = pa
+            beta_px[by, u] = pb
+            gamma_px[by, u] = pg
+            mixed_px[by, u] = 1.0 if mixed else 0.0
