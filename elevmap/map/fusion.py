@@ -60,8 +60,9 @@ variance the gate uses and the weight's tau^2) is read from the layers once per 
 grid first meets the cell in a frame, and kept beside its sums.
 
 The kernel checks each point's values in the same pass (:func:`elevmap.map.settings.check_point_values`
-is its NumPy reference): the pass writes only the partial grids, so a frame with a bad point leaves the
-map as it was, and the check costs a few comparisons per point instead of several passes over the arrays.
+is its NumPy reference), a block of points at a time just before it sums them: the pass writes only the
+partial grids, so a frame with a bad point leaves the map as it was, and the check costs a few vectorised
+comparisons per point instead of several passes over the arrays.
 :func:`fuse_frame_reference` computes the same update with NumPy (bincount); the tests hold the two
 equal.
 """
@@ -448,13 +449,39 @@ def _open_cell(data, acc, acc_stamp, p, c, bi, bj, fid):
         a[PR_T2] = _weight_tau2(data, bi, bj)
 
 
+#: Points checked at a time, just before the pass sums them (a block's values are then in the cache).
+CHECK_BLOCK = 256
+
+
+@njit(**JIT)
+def _count_bad(x, y, z, var, hx, hxy, hy, has_h, k0, k1):
+    """Number of the points k0..k1-1 whose values fail the check: coordinates within MAX_COORDINATE_M,
+    MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE, horizontal covariance finite with xx, yy >= 0 (NaN
+    fails every comparison). Loops without branches (& rather than and), which the compiler vectorises."""
+    inf = np.inf
+    bad = 0
+    for k in range(k0, k1):
+        ok = ((abs(x[k]) <= MAX_COORDINATE_M) & (abs(y[k]) <= MAX_COORDINATE_M) & (abs(z[k]) <= MAX_COORDINATE_M)
+              & (var[k] >= MIN_HEIGHT_VARIANCE) & (var[k] <= MAX_POINT_VARIANCE))
+        bad += not ok
+    if has_h:
+        for k in range(k0, k1):
+            h0 = hx[k]
+            h2 = hy[k]
+            ok = (h0 >= 0.0) & (h0 < inf) & (h2 >= 0.0) & (h2 < inf) & (abs(hxy[k]) < inf)
+            bad += not ok
+    return bad
+
+
 @njit(parallel=True, **JIT)
-def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, acc, acc_stamp, fid, check, box,
+def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, params, acc, acc_stamp, fid, check, box,
                        low_margin):
-    """Pass 1, per partial grid over its fixed range of points: check each point's values (``check``),
-    gate it against its cell's prior and sum it into the cell's partial grid. Writes only ``acc``,
-    ``acc_stamp`` and ``box`` (per partial: points that failed the check, first and last map row and
-    column reached). With ``low_margin`` >= 0 it also keeps each cell's lowest ray end for the
+    """Pass 1, per partial grid over its fixed range of points: check the points' values (``check``; a
+    block of CHECK_BLOCK points at a time, just before they are summed), gate each point against its
+    cell's prior and sum it into the cell's partial grid. Writes only ``acc``, ``acc_stamp`` and ``box``
+    (per partial: points that failed the check, first and last map row and column reached): a point that
+    fails the check is summed too (its sums are garbage), and the caller then raises before anything
+    reaches the map. With ``low_margin`` >= 0 it also keeps each cell's lowest ray end for the
     visibility clean-up: the least z + low_margin sigma, ties to the smaller point index.
 
     Consecutive points of a depth image mostly fall in the same cell: a run of points in one cell is
@@ -482,24 +509,17 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
         i = j = bi = bj = c = 0
         cx0 = cx1 = cy0 = cy1 = 0.0            # the current cell's interior (empty: none yet)
         end = (N * (p + 1)) // P
+        next_check = 0
         for k in range((N * p) // P, end + 1):
             last = k == end
             if not last:
+                if check and k >= next_check:
+                    next_check = min(k + CHECK_BLOCK, end)
+                    nbad += _count_bad(x, y, z, var, hx, hxy, hy, has_h, k, next_check)
                 xk = x[k]
                 yk = y[k]
                 zk = z[k]
                 vk = var[k]
-                # finite and within MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE (NaN fails all)
-                # & rather than and: no branch per comparison
-                ok = ((abs(xk) <= MAX_COORDINATE_M) & (abs(yk) <= MAX_COORDINATE_M) & (abs(zk) <= MAX_COORDINATE_M)
-                      & (vk >= MIN_HEIGHT_VARIANCE) & (vk <= MAX_POINT_VARIANCE)) or not check
-                if has_h and check:
-                    h0 = hcov[k, 0]
-                    h2 = hcov[k, 2]
-                    ok = ok & (h0 >= 0.0) & (h0 < inf) & (h2 >= 0.0) & (h2 < inf) & (abs(hcov[k, 1]) < inf)
-                if not ok:
-                    nbad += 1
-                    continue
                 # the cell of the previous point when this one lies inside that cell's interior shrunk by a
                 # relative 1e-9 (floor(x / res) cannot round across a border there: the division's rounding
                 # error is ~1e-16 of x / res); else floor(x / res) as everywhere else in the map
@@ -588,9 +608,9 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hcov, has_h, params, a
                 zmn = min(zmn, zk)
                 zmx = max(zmx, zk)
                 if has_h:
-                    hxs += w * hcov[k, 0]
-                    hxys += w * hcov[k, 1]
-                    hys += w * hcov[k, 2]
+                    hxs += w * hx[k]
+                    hxys += w * hxy[k]
+                    hys += w * hy[k]
         box[p, 0] = nbad
         box[p, 1] = a0
         box[p, 2] = a1
@@ -728,8 +748,8 @@ def accumulate(data, geometry, points_map, height_var, horizontal_cov, packed_pa
     workspace.frame += 1
     box = np.empty((PARTIALS, 5), dtype=np.int64)
     _accumulate_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, points_map[:, 0], points_map[:, 1],
-                       points_map[:, 2], height_var, h, has_h, packed_params, workspace.acc, workspace.stamp,
-                       workspace.frame, bool(check), box, -1.0 if low_margin is None else float(low_margin))
+                       points_map[:, 2], height_var, h[:, 0], h[:, 1], h[:, 2], has_h, packed_params, workspace.acc,
+                       workspace.stamp, workspace.frame, bool(check), box, -1.0 if low_margin is None else float(low_margin))
     if box[:, 0].sum() > 0:
         check_point_values(points_map, height_var, horizontal_cov)
         raise ValueError("points_map, height_var or horizontal_cov hold values out of range")   # not reached
