@@ -146,16 +146,18 @@ def check_intrinsics(K, name: str = "K") -> np.ndarray:
     if not np.issubdtype(a.dtype, np.number) or np.issubdtype(a.dtype, np.complexfloating):
         raise ValueError(f"{name} must be real numbers, got dtype {a.dtype}")
     a = a.astype(np.float64)
-    if not np.all(np.isfinite(a)):
+    (fx, s01, _), (s10, fy, _), last = rows = a.tolist()      # Python floats: checked on every frame
+    if not all(math.isfinite(x) for row in rows for x in row):
         raise ValueError(f"{name} has non-finite entries")
-    if a[0, 0] <= 0 or a[1, 1] <= 0:
-        raise ValueError(f"{name} focal lengths must be > 0 px, got fx={a[0, 0]}, fy={a[1, 1]}")
-    if a[0, 0] < 1.0 or a[1, 1] < 1.0:       # a field of view near 180 deg; the noise model's 1/f^2 overflows
-        raise ValueError(f"{name} focal lengths must be >= 1 px, got fx={a[0, 0]:g}, fy={a[1, 1]:g}")
-    if a[0, 1] != 0 or a[1, 0] != 0:
-        raise ValueError(f"{name} has skew/shear terms ({a[0, 1]}, {a[1, 0]}); only zero skew is supported")
-    if not np.allclose(a[2], [0.0, 0.0, 1.0]):
-        raise ValueError(f"{name} last row must be [0, 0, 1], got {a[2].tolist()}")
+    if fx <= 0 or fy <= 0:
+        raise ValueError(f"{name} focal lengths must be > 0 px, got fx={fx}, fy={fy}")
+    if fx < 1.0 or fy < 1.0:       # a field of view near 180 deg; the noise model's 1/f^2 overflows
+        raise ValueError(f"{name} focal lengths must be >= 1 px, got fx={fx:g}, fy={fy:g}")
+    if s01 != 0 or s10 != 0:
+        raise ValueError(f"{name} has skew/shear terms ({s01}, {s10}); only zero skew is supported")
+    # np.allclose(last, [0, 0, 1]): |x - y| <= 1e-8 + 1e-5 |y|
+    if not (abs(last[0]) <= 1e-8 and abs(last[1]) <= 1e-8 and abs(last[2] - 1.0) <= 1e-8 + 1e-5):
+        raise ValueError(f"{name} last row must be [0, 0, 1], got {last}")
     return a
 
 

@@ -146,7 +146,7 @@ def test_bad_inputs_name_what_is_wrong(rng):
         to_map_frame(np.repeat(C, 2, axis=0), p, T)
 
 
-def test_per_frame_checks_decide_as_the_eigen_decomposition_and_the_matrix_product(rng):
+def test_per_frame_checks_decide_as_the_eigen_decomposition_and_np_allclose(rng):
     from noise_model.checks import check_pose_cov, check_transform
     # pose covariances: accepted exactly when the smallest eigenvalue is >= -1e-9 of the largest entry,
     # diagonal ones (decided from the diagonal) and full ones alike
@@ -192,6 +192,22 @@ def test_per_frame_checks_decide_as_the_eigen_decomposition_and_the_matrix_produ
     T[1, 3] = np.nan
     with pytest.raises(ValueError, match="T_map_cam has non-finite entries"):
         check_transform(T)
+    # intrinsics: the last row as np.allclose(row, [0, 0, 1])
+    from noise_model.checks import check_intrinsics
+    K = np.array([[420.0, 0.0, 212.0], [0.0, 420.0, 120.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_array_equal(check_intrinsics(K), K)
+    for row, ok in (([0.0, 0.0, 1.000005], True), ([0.0, 0.0, 1.00002], False), ([1e-7, 0.0, 1.0], False),
+                    ([0.0, 5e-9, 1.0], True)):
+        K2 = K.copy()
+        K2[2] = row
+        assert np.allclose(K2[2], [0.0, 0.0, 1.0]) == ok
+        if ok:
+            check_intrinsics(K2)
+        else:
+            with pytest.raises(ValueError, match=r"K last row must be \[0, 0, 1\]"):
+                check_intrinsics(K2)
+    with pytest.raises(ValueError, match="K has non-finite entries"):
+        check_intrinsics(np.diag([np.nan, 1.0, 1.0]))
 
 
 def test_stacks_of_transforms_are_validated_naming_the_bad_one(rng):
