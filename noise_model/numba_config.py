@@ -13,13 +13,15 @@ Thread counts are passed into every parallel entry point as ``nthreads`` and app
 so that every output element is written by one thread in a fixed order: results are bit-identical
 whatever the thread count.
 
-OpenMP's threads wait passively (``OMP_WAIT_POLICY=PASSIVE`` unless the user's environment sets it): a
-kernel's threads meet at a barrier after each parallel region, and with OpenMP's default spinning a thread
-that waits for a partner descheduled by any other busy process burns its own time slice too, so a frame
-costs whole time slices per region on a machine that also runs a robot's other software. Passive waiting
-costs a thread wake-up per region on an idle machine. The variable is read when the OpenMP runtime loads
-(numba's first parallel launch), so it is set here, before any kernel runs; a program that loaded OpenMP
-earlier keeps its own policy. docs/noise-model.md gives the measured cost and gain.
+OpenMP's threads spin only briefly before they sleep (``GOMP_SPINCOUNT=10000`` unless the user's
+environment sets it or ``OMP_WAIT_POLICY``): a kernel's threads meet at a barrier after each parallel
+region, and with libgomp's default spin (300,000 rounds) a thread that waits for a partner descheduled by
+any other busy process burns its own time slice too, so a frame costs whole time slices per region on a
+machine that also runs a robot's other software. Sleeping at once (``OMP_WAIT_POLICY=PASSIVE``) is as
+robust but pays a wake-up per region on an idle machine; a short spin keeps most of the idle speed. The
+variable is read when the OpenMP runtime loads (numba's first parallel launch), so it is set here, before
+any kernel runs; a program that loaded OpenMP earlier keeps its own setting. docs/noise-model.md gives
+the measured cost and gain.
 """
 
 from __future__ import annotations
@@ -28,11 +30,14 @@ import contextlib
 import os
 import threading
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+#: libgomp's spin before a waiting thread sleeps, unless the user chose a wait policy or a spin count.
+SPINCOUNT = "10000"
+if "OMP_WAIT_POLICY" not in os.environ:
+    os.environ.setdefault("GOMP_SPINCOUNT", SPINCOUNT)
 
-import numba  # noqa: E402  (after the wait policy, which OpenMP reads once when numba loads it)
+import numba  # noqa: E402  (after the spin count, which OpenMP reads once when numba loads it)
 
-__all__ = ["FASTMATH", "JIT", "THREADSAFE_LAYERS", "layer_is_threadsafe", "resolve_threads", "threads"]
+__all__ = ["FASTMATH", "JIT", "SPINCOUNT", "THREADSAFE_LAYERS", "layer_is_threadsafe", "resolve_threads", "threads"]
 
 #: numba fastmath flags: no nnan/ninf (isnan must work), no arcp (exact division for binning).
 FASTMATH = {"nsz", "contract", "afn", "reassoc"}

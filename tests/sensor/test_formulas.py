@@ -55,17 +55,22 @@ def test_compiled_formulas_equal_the_numpy_ones():
             assert compiled[f](*args) == pytest.approx(f(*args), rel=1e-14, abs=0.0)
 
 
-def test_openmp_waits_passively_unless_the_user_chose_a_policy():
-    """Spinning OpenMP threads lose whole time slices at every barrier on a busy robot computer; the policy
-    must be in the environment before numba loads OpenMP, and a user's own choice wins."""
+def test_openmp_spins_briefly_unless_the_user_chose_a_policy():
+    """Long-spinning OpenMP threads lose whole time slices at every barrier on a busy robot computer; the spin
+    count must be in the environment before numba loads OpenMP, and a user's own choice wins."""
     import os
     import subprocess
     import sys
 
-    code = "import os; from noise_model import numba_config; print(os.environ['OMP_WAIT_POLICY'])"
-    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
-    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "PASSIVE"
-    out = subprocess.run([sys.executable, "-c", code], env={**env, "OMP_WAIT_POLICY": "ACTIVE"},
-                         capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "ACTIVE"
+    code = ("import os; from noise_model import numba_config; "
+            "print(os.environ.get('GOMP_SPINCOUNT'), os.environ.get('OMP_WAIT_POLICY'))")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+
+    def run(**extra):
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                             check=True)
+        return out.stdout.split()
+
+    assert run() == ["10000", "None"]
+    assert run(OMP_WAIT_POLICY="ACTIVE") == ["None", "ACTIVE"]
+    assert run(GOMP_SPINCOUNT="5") == ["5", "None"]
