@@ -237,6 +237,20 @@ def _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m, max_depth_
     return d, scale, K, T, P, zmin, zmax, b
 
 
+def _prepare_frame(depth, K, T_map_cam, pose_cov, depth_scale, model, min_depth_m, max_depth_m, block_px, nthreads,
+                   workspace):
+    """The checked inputs of one frame (:func:`_prepare`), the model at the frame's focal length, the thread
+    count and the workspace (a new one, or the caller's after checking that it fits the depth image)."""
+    d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
+                                                max_depth_m, block_px)
+    model = _frame_model(model, K)
+    n = resolve_threads(nthreads)
+    ws = Workspace(*d.shape) if workspace is None else workspace
+    if not isinstance(ws, Workspace) or ws.shape != d.shape:
+        raise ValueError(f"workspace must be a Workspace of the depth image's size {d.shape}")
+    return d, scale, K, T, P, zmin, zmax, b, model, n, ws
+
+
 def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None, model: SensorModel = D435,
                         min_depth_m: float = MIN_DEPTH_M, max_depth_m: float = MAX_DEPTH_M,
                         block_px: int | None = None, nthreads: int | None = None,
@@ -280,13 +294,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     -------
     MapPoints
     """
-    d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
-                                                max_depth_m, block_px)
-    model = _frame_model(model, K)
-    n = resolve_threads(nthreads)
-    ws = Workspace(*d.shape) if workspace is None else workspace
-    if not isinstance(ws, Workspace) or ws.shape != d.shape:
-        raise ValueError(f"workspace must be a Workspace of the depth image's size {d.shape}")
+    d, scale, K, T, P, zmin, zmax, b, model, n, ws = _prepare_frame(
+        depth, K, T_map_cam, pose_cov, depth_scale, model, min_depth_m, max_depth_m, block_px, nthreads, workspace)
     with threads(n):
         N = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws))
     out = MapPoints(ws.points_map[:, :N].T, ws.height_var[:N], ws.horizontal_cov[:, :N].T, ws.pixel[:N])
@@ -314,13 +323,8 @@ def depth_to_map_points_by_stage(depth, K, T_map_cam, pose_cov=None, *, depth_sc
     seconds : dict
         {stage: seconds} for each stage of :data:`STAGES`, in order.
     """
-    d, scale, K, T, P, zmin, zmax, b = _prepare(depth, K, T_map_cam, pose_cov, depth_scale, min_depth_m,
-                                                max_depth_m, block_px)
-    model = _frame_model(model, K)
-    n = resolve_threads(nthreads)
-    ws = Workspace(*d.shape) if workspace is None else workspace
-    if not isinstance(ws, Workspace) or ws.shape != d.shape:
-        raise ValueError(f"workspace must be a Workspace of the depth image's size {d.shape}")
+    d, scale, K, T, P, zmin, zmax, b, model, n, ws = _prepare_frame(
+        depth, K, T_map_cam, pose_cov, depth_scale, model, min_depth_m, max_depth_m, block_px, nthreads, workspace)
     clock: dict[str, float] = {}
     with threads(n):
         N = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_by_one=True),
