@@ -496,8 +496,12 @@ def handle_signals():
         raise Interrupted(signum)
 
     def quiet_unraisable(unraisable):
-        if isinstance(unraisable.exc_value, Interrupted):
-            return                                  # swallowed by C code: recorded, raised again later
+        # swallowed by C code: recorded, raised again later. And once a signal has arrived, an object whose
+        # construction it cut short may fail in its finalizer (rerun's RecordingStream without its native
+        # stream), even after this block has been left: the run is being torn down, that is not the user's
+        # concern, and its traceback must not bury the one-line message.
+        if isinstance(unraisable.exc_value, Interrupted) or _pending_signal is not None:
+            return
         previous_hook(unraisable)
 
     _pending_signal = None
@@ -515,7 +519,8 @@ def handle_signals():
         remove_temporaries()
         raise
     finally:
-        sys.unraisablehook = previous_hook
+        if _pending_signal is None:             # else kept: finalizers run as the exception is dropped
+            sys.unraisablehook = previous_hook
         for sig, handler in previous.items():
             if handler is not None:
                 signal.signal(sig, handler)
