@@ -119,6 +119,27 @@ def _floor_kernel(data, gx0, gy0, res, x, y, z, var, acc, acc_stamp, fid):
     return touched
 
 
+def _check_floor_shapes(data, geometry, points_map, height_var, workspace=None) -> None:
+    """The shapes and dtypes the floor's kernel indexes by, checked in O(1) (the values stay unchecked: that
+    is the floor's definition). Without it a short ``height_var`` or a workspace of another map size would
+    be read or written out of bounds by the unchecked numba kernel."""
+    n = geometry.n
+    if not (isinstance(data, np.ndarray) and data.ndim == 3 and data.shape[1:] == (n, n)
+            and data.dtype == np.float64):
+        raise ValueError(f"data must be a float64 (layers, {n}, {n}) array of the geometry's map, got "
+                         f"{getattr(data, 'dtype', type(data).__name__)} {getattr(data, 'shape', '')}")
+    if not (isinstance(points_map, np.ndarray) and points_map.ndim == 2 and points_map.shape[1] == 3
+            and points_map.dtype == np.float64):
+        raise ValueError(f"points_map must be a float64 (N, 3) array [m], got "
+                         f"{getattr(points_map, 'dtype', type(points_map).__name__)} {getattr(points_map, 'shape', '')}")
+    if not (isinstance(height_var, np.ndarray) and height_var.shape == (points_map.shape[0],)
+            and height_var.dtype == np.float64):
+        raise ValueError(f"height_var must be a float64 array of shape ({points_map.shape[0]},) [m^2], got "
+                         f"{getattr(height_var, 'dtype', type(height_var).__name__)} {getattr(height_var, 'shape', '')}")
+    if workspace is not None and (not isinstance(workspace, FloorWorkspace) or workspace.n != n):
+        raise ValueError(f"workspace must be a FloorWorkspace of the map's size n = {n}")
+
+
 def fuse_floor(data, geometry, points_map, height_var, workspace: FloorWorkspace, nthreads=None) -> int:
     """Fuse one frame into the ``elevation`` and ``variance`` layers of ``data`` in place (numba).
 
@@ -128,7 +149,8 @@ def fuse_floor(data, geometry, points_map, height_var, workspace: FloorWorkspace
         The map's layers, buffer order (an :class:`ElevationMap`'s ``data``).
     geometry : elevmap.map.grid.GridGeometry
     points_map : ndarray, shape (N, 3), float64
-        Map-frame points [m] (any memory layout; unchecked: the floor does no input check).
+        Map-frame points [m] (any memory layout). Shapes, dtypes and the workspace's size are checked
+        (``ValueError``); the values are not: the floor does no per-point check.
     height_var : ndarray, shape (N,), float64
         Height variance of each point [m^2], > 0.
     workspace : FloorWorkspace
@@ -139,6 +161,7 @@ def fuse_floor(data, geometry, points_map, height_var, workspace: FloorWorkspace
     int
         Cells touched.
     """
+    _check_floor_shapes(data, geometry, points_map, height_var, workspace)
     n = resolve_threads(nthreads)
     workspace.frame += 1
     with threads(n):
@@ -148,7 +171,8 @@ def fuse_floor(data, geometry, points_map, height_var, workspace: FloorWorkspace
 
 
 def fuse_floor_reference(data, geometry, points_map, height_var) -> int:
-    """NumPy reference of :func:`fuse_floor` (bincount)."""
+    """NumPy reference of :func:`fuse_floor` (bincount), with the same checks."""
+    _check_floor_shapes(data, geometry, points_map, height_var)
     g = geometry
     n = g.n
     fi = np.floor(points_map[:, 0] / g.resolution_m) - g.gx0

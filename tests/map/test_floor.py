@@ -49,3 +49,21 @@ def test_floor_kernel_equals_reference_and_thread_counts():
         np.testing.assert_allclose(maps[0].data, maps[2].data, rtol=1e-12)
         for m in maps:
             m.move_to((0.3 * f, -0.2 * f))
+
+
+def test_floor_refuses_shapes_its_unchecked_kernel_would_index_out_of_bounds():
+    m = ElevationMap(3.0, 1.0)
+    pts = np.zeros((4, 3))
+    var = np.ones(4)
+    before = m.data.copy()
+    for args, msg in (((m.data, m.geometry, pts, var[:3], FloorWorkspace(m.n)), "height_var"),
+                      ((m.data, m.geometry, pts[:, :2], var, FloorWorkspace(m.n)), "points_map"),
+                      ((m.data, m.geometry, pts.astype(np.float32), var, FloorWorkspace(m.n)), "points_map"),
+                      ((m.data, m.geometry, pts, var, FloorWorkspace(m.n + 1)), "workspace"),
+                      ((m.data[:, :2], m.geometry, pts, var, FloorWorkspace(m.n)), "data")):
+        with pytest.raises(ValueError, match=msg):
+            fuse_floor(*args)
+        if msg != "workspace":
+            with pytest.raises(ValueError, match=msg):
+                fuse_floor_reference(*args[:4])
+    np.testing.assert_array_equal(m.data, before)
