@@ -8,9 +8,10 @@ window planes, angles, mixed windows), ``surfaces`` (depth edges, speckles, row 
 from __future__ import annotations
 
 from .frame import (
-    MAX_DEPTH_M, MIN_DEPTH_M, NOISE_DEPTH_SIGMAS, STAGES, MapPoints, Workspace, depth_to_map_points,
-    depth_to_map_points_by_stage, depth_to_map_points_reference,
+    MAX_COORDINATE_M, MAX_DEPTH_M, MAX_POINT_VARIANCE, MIN_DEPTH_M, MIN_HEIGHT_VARIANCE, NOISE_DEPTH_SIGMAS, STAGES,
+    MapPoints, Workspace, depth_to_map_points, depth_to_map_points_by_stage, depth_to_map_points_reference,
 )
 
-__all__ = ["MAX_DEPTH_M", "MIN_DEPTH_M", "NOISE_DEPTH_SIGMAS", "STAGES", "MapPoints", "Workspace",
-           "depth_to_map_points", "depth_to_map_points_by_stage", "depth_to_map_points_reference"]
+__all__ = ["MAX_COORDINATE_M", "MAX_DEPTH_M", "MAX_POINT_VARIANCE", "MIN_DEPTH_M", "MIN_HEIGHT_VARIANCE",
+           "NOISE_DEPTH_SIGMAS", "STAGES", "MapPoints", "Workspace", "depth_to_map_points",
+           "depth_to_map_points_by_stage", "depth_to_map_points_reference"]

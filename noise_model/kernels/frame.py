@@ -43,11 +43,12 @@ from ..geometry import (
 from ..numba_config import resolve_threads, threads
 from .compiled import EDGES, PLANES, POINTS, ROW_MEDIANS, SURFACE_MEDIANS, sorting_network
 from .planes import moments_stage
-from .points import points_stage
+from .points import count_outside, points_stage
 from .surfaces import surfaces_stage
 
-__all__ = ["MAX_DEPTH_M", "MIN_DEPTH_M", "NOISE_DEPTH_SIGMAS", "STAGES", "MapPoints", "Workspace",
-           "depth_to_map_points", "depth_to_map_points_by_stage", "depth_to_map_points_reference"]
+__all__ = ["MAX_COORDINATE_M", "MAX_DEPTH_M", "MAX_POINT_VARIANCE", "MIN_DEPTH_M", "MIN_HEIGHT_VARIANCE",
+           "NOISE_DEPTH_SIGMAS", "STAGES", "MapPoints", "Workspace", "depth_to_map_points",
+           "depth_to_map_points_by_stage", "depth_to_map_points_reference"]
 
 
 _GH_X = np.array(THETA_QUADRATURE[0])
@@ -62,6 +63,14 @@ NOISE_DEPTH_SIGMAS = 3.0
 #: datasheet's upper figure (sigma_z there is ~0.4 m).
 MIN_DEPTH_M = 0.1
 MAX_DEPTH_M = 10.0
+
+#: The bounds of a point's values that :attr:`MapPoints.n_outside` counts against: coordinates [m] (within
+#: 1e9 m of the origin: floor(x / resolution) stays an exact integer), height variance [m^2] (positive,
+#: and in m^2 rather than mm^2). They are those a map takes (docs/conventions.md), so that a map can skip
+#: its own check of a frame in which the kernel counted none.
+MAX_COORDINATE_M = 1e9
+MIN_HEIGHT_VARIANCE = 1e-18
+MAX_POINT_VARIANCE = 1e4
 
 #: The kernel's stages in the order they run (see the module's docstring).
 STAGES = ("moments", "planes", "edges", "row_medians", "surface_medians", "points")
@@ -103,12 +112,20 @@ class MapPoints(NamedTuple):
         (Sigma_xx, Sigma_xy, Sigma_yy) of each point in the map frame.
     pixel : ndarray, shape (N,), int64
         Flat pixel index v * W + u of each point.
+    n_outside : int or None
+        How many of the points have a value outside the bounds a map takes: a coordinate not finite or
+        beyond :data:`MAX_COORDINATE_M`, a height variance outside [:data:`MIN_HEIGHT_VARIANCE`,
+        :data:`MAX_POINT_VARIANCE`] (or NaN), a horizontal covariance with a negative or non-finite xx or
+        yy, or a non-finite xy. Counted as the values are written (0: every value is within them, so a map
+        need not check them again); None: not counted (points assembled elsewhere, whose values a map
+        must check).
     """
 
     points_map: np.ndarray
     height_var: np.ndarray
     horizontal_cov: np.ndarray
     pixel: np.ndarray
+    n_outside: int | None = None
 
 
 class Workspace:
@@ -139,6 +156,7 @@ class Workspace:
         self.flags = np.empty(self.shape, dtype=np.uint8)
         self.rowcount = np.empty(H, dtype=np.int64)
         self.offsets = np.empty(H + 1, dtype=np.int64)
+        self.outside = np.empty(H, dtype=np.int64)     # per row: points outside the bounds of MapPoints
         self._block_px = None
 
     def blocks(self, block_px: int):
@@ -188,7 +206,8 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
         return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, family, NOISE_DEPTH_SIGMAS, b,
                 bool(bin_at_plane), jump_rel, thr_sig, SURFACE_HALF_ROWS, sorting_network(2 * SURFACE_HALF_ROWS + 1),
                 ws.row_median, gain, eg, eg2, alpha, beta, gamma, mixed, ws.offsets, ws.flags, ws.speckle_z,
-                ws.surface_z, ws.points_map, ws.height_var, ws.horizontal_cov, ws.pixel)
+                ws.surface_z, MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE, MAX_POINT_VARIANCE, ws.points_map, ws.height_var,
+                ws.horizontal_cov, ws.pixel, ws.outside)
 
     moments = ("moments", moments_stage, (d, scale, zmin, zmax, up, vp, b, M, ws.rowcount, ws.offsets))
     if not one_by_one:
@@ -199,16 +218,26 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
             ("surface_medians", points_stage, points(SURFACE_MEDIANS)), ("points", points_stage, points(POINTS))]
 
 
-def _run_stages(calls, clock=None) -> int:
-    """Run the stages of :func:`_stage_calls`; with ``clock`` (a dict), its entries are the seconds each took."""
-    N = 0
+def _run_stages(calls, clock=None) -> tuple[int, int]:
+    """Run the stages of :func:`_stage_calls`; with ``clock`` (a dict), its entries are the seconds each took.
+    Returns the number of points and the number of them outside the bounds of :class:`MapPoints`."""
+    N = n_out = 0
     for name, kernel, args in calls:
         t0 = time.perf_counter()
         out = kernel(*args)
         if clock is not None:
             clock[name] = time.perf_counter() - t0
         N = out if name == "moments" else N
-    return int(N)
+        n_out = out if name == "points" else n_out
+    return int(N), int(n_out)
+
+
+def _outputs(ws, N, n_out, fresh) -> MapPoints:
+    """The first N points of the workspace's outputs (views; ``fresh``: copies of exactly N rows)."""
+    arrays = (ws.points_map[:, :N].T, ws.height_var[:N], ws.horizontal_cov[:, :N].T, ws.pixel[:N])
+    if fresh:
+        arrays = tuple(np.ascontiguousarray(a) for a in arrays)
+    return MapPoints(*arrays, n_outside=n_out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -297,11 +326,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     d, scale, K, T, P, zmin, zmax, b, model, n, ws = _prepare_frame(
         depth, K, T_map_cam, pose_cov, depth_scale, model, min_depth_m, max_depth_m, block_px, nthreads, workspace)
     with threads(n):
-        N = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws))
-    out = MapPoints(ws.points_map[:, :N].T, ws.height_var[:N], ws.horizontal_cov[:, :N].T, ws.pixel[:N])
-    if workspace is None:   # fresh arrays of exactly N rows, not views of an oversized buffer
-        out = MapPoints(*(np.ascontiguousarray(a) for a in out))
-    return out
+        N, n_out = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws))
+    return _outputs(ws, N, n_out, workspace is None)   # without a workspace: fresh arrays, not views
 
 
 def depth_to_map_points_by_stage(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
@@ -327,12 +353,9 @@ def depth_to_map_points_by_stage(depth, K, T_map_cam, pose_cov=None, *, depth_sc
         depth, K, T_map_cam, pose_cov, depth_scale, model, min_depth_m, max_depth_m, block_px, nthreads, workspace)
     clock: dict[str, float] = {}
     with threads(n):
-        N = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_by_one=True),
-                        clock)
-    out = MapPoints(ws.points_map[:, :N].T, ws.height_var[:N], ws.horizontal_cov[:, :N].T, ws.pixel[:N])
-    if workspace is None:
-        out = MapPoints(*(np.ascontiguousarray(a) for a in out))
-    return out, clock
+        N, n_out = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws,
+                                            one_by_one=True), clock)
+    return _outputs(ws, N, n_out, workspace is None), clock
 
 
 def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
@@ -388,4 +411,6 @@ def depth_to_map_points_reference(depth, K, T_map_cam, pose_cov=None, *, depth_s
         pb = p * (zb / p[:, 2])[:, None]
         points_map[:, :2] = (pb @ T[:3, :3].T + T[:3, 3])[:, :2]
     hcov = np.stack([cov_map[:, 0, 0], cov_map[:, 0, 1], cov_map[:, 1, 1]], axis=1)
-    return MapPoints(points_map, cov_map[:, 2, 2].copy(), hcov, pix.astype(np.int64))
+    hvar = cov_map[:, 2, 2].copy()
+    n_out = count_outside(points_map, hvar, hcov, MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE, MAX_POINT_VARIANCE)
+    return MapPoints(points_map, hvar, hcov, pix.astype(np.int64), n_out)

@@ -23,12 +23,15 @@ __all__: list[str] = []
 @njit(parallel=True, **JIT)
 def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, family, noise_sigmas, b,
                  bin_at_plane, jump_rel, thr_sig, rows_half, surface_net, rowmed, gain_px, eg_px, eg2_px, alpha_px,
-                 beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z, pts, hvar, hcov, pix):
+                 beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z, coord_max, var_min, var_max, pts,
+                 hvar, hcov, pix, outside):
     """Stages 3c and 4 per block row, in one parallel region: those of ``parts`` (SURFACE_MEDIANS, POINTS
     of :mod:`noise_model.kernels.compiled`). Stage 3c, the surface medians of the block row's pixels:
     :func:`noise_model.kernels.surfaces.surface_medians_block_row` (jump_rel .. rowmed in, surface_z out).
     Stage 4, inline below: fill columns offsets[v] .. offsets[v + 1] - 1 of pts (3, n) [m], hvar (n,)
-    [m^2], hcov (3, n) [m^2] and pix (n,) with the valid pixels of row v.
+    [m^2], hcov (3, n) [m^2] and pix (n,) with the valid pixels of row v, and count in outside[v] the points
+    of row v whose values lie outside the bounds a map takes (see :func:`count_outside`, whose predicate the
+    loop repeats inline so that it stays vectorised).
 
     Parameters
     ----------
@@ -57,6 +60,16 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
         Where each row's points go (:func:`noise_model.kernels.planes.moments_stage`).
     flags, speckle_z, surface_z : ndarray, shape (H, W)
         The edges, speckles and surface medians of :mod:`noise_model.kernels.surfaces`.
+    coord_max, var_min, var_max : float
+        The bounds of :func:`count_outside`: coordinates [m], height variance [m^2].
+    outside : ndarray, shape (H,), int64
+        Out: per row, the number of its points that :func:`count_outside` would count (0 for a row
+        without points).
+
+    Returns
+    -------
+    int
+        The number of points outside the bounds (the sum of ``outside``); 0 unless ``parts`` has POINTS.
 
     Per row: (a) compaction of the valid pixels into row buffers, a scalar loop, (b) the arithmetic over
     the compacted pixels, written to the outputs. (b) vectorises: it indexes from 0 or with unsigned
@@ -87,6 +100,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
     P22, P23, P24 = P[2, 2], P[2, 3], P[2, 4]
     P33, P34, P35, P44, P45, P55 = P[3, 3], P[3, 4], P[3, 5], P[4, 4], P[4, 5], P[5, 5]
     nan = np.nan
+    inf = np.inf
     for ib in prange(nby):
         by = interleaved(ib, nby)
         if parts & SURFACE_MEDIANS:
@@ -98,6 +112,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
         for v in range(by * b, min(H, by * b + b)):
             if not parts & POINTS:
                 break
+            outside[v] = 0
             if offsets[v + 1] == offsets[v]:
                 continue
             # (a) compaction of the valid pixels (column, depth, flags): every pixel is stored, the count
@@ -120,6 +135,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
             b1 = R11 * vv + R12
             b2 = R21 * vv + R22
             base = v * W
+            nout = 0
             for j in range(np.uint64(k)):
                 u = cu[j]
                 z = cz[j]
@@ -182,11 +198,54 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
                 # two surfaces at the nearer of the plane and the surface median (a speckle: its
                 # replaced depth); z from the measured depth (see MapPoints)
                 zb = (min(zf, zr) if mixed_px[by, u] > 0.0 else zs) if bin_at_plane else z
-                pts[0, i] = zb * a0 + t0
-                pts[1, i] = zb * a1 + t1
-                pts[2, i] = q2 + t2
+                x = zb * a0 + t0
+                y = zb * a1 + t1
+                zm = q2 + t2
+                pts[0, i] = x
+                pts[1, i] = y
+                pts[2, i] = zm
                 hvar[i] = czz
                 hcov[0, i] = cxx
                 hcov[1, i] = cxy
                 hcov[2, i] = cyy
                 pix[i] = base + u
+                # the predicate of count_outside (NaN fails every comparison, so it counts)
+                ok = ((abs(x) <= coord_max) & (abs(y) <= coord_max) & (abs(zm) <= coord_max) & (czz >= var_min)
+                      & (czz <= var_max) & (cxx >= 0.0) & (cxx < inf) & (cyy >= 0.0) & (cyy < inf)
+                      & (abs(cxy) < inf))
+                nout += 0 if ok else 1
+            outside[v] = nout
+    total = 0
+    if parts & POINTS:
+        for v in range(H):
+            total += outside[v]
+    return total
+
+
+def count_outside(points_map, height_var, horizontal_cov, coord_max, var_min, var_max):
+    """Number of points whose values lie outside the bounds a map takes (NumPy; the points stage counts
+    the same inline as it writes its outputs).
+
+    A point counts when a coordinate is not finite or beyond ``coord_max`` in magnitude, its height
+    variance is not within [var_min, var_max], or its horizontal covariance has an xx or yy entry that is
+    negative or not finite, or an xy entry that is not finite.
+
+    Parameters
+    ----------
+    points_map : ndarray, shape (N, 3) [m]
+    height_var : ndarray, shape (N,) [m^2]
+    horizontal_cov : ndarray, shape (N, 3) [m^2]
+        (Sigma_xx, Sigma_xy, Sigma_yy).
+    coord_max, var_min, var_max : float
+        The bounds: coordinates [m], height variance [m^2].
+
+    Returns
+    -------
+    int
+    """
+    with np.errstate(invalid="ignore"):
+        ok = np.all(np.abs(points_map) <= coord_max, axis=1)
+        ok &= (height_var >= var_min) & (height_var <= var_max)
+        h = horizontal_cov
+        ok &= (h[:, 0] >= 0.0) & (h[:, 0] < np.inf) & (h[:, 2] >= 0.0) & (h[:, 2] < np.inf) & (np.abs(h[:, 1]) < np.inf)
+    return int(len(ok) - np.count_nonzero(ok))

@@ -25,6 +25,7 @@ def assert_same(a, b, rtol=1e-6):
         else:
             scale = max(float(np.abs(y).max()), 1e-30) if y.size else 1.0
             assert float(np.abs(x - y).max(initial=0.0)) <= rtol * scale, name
+    assert a.n_outside == b.n_outside, "n_outside"
 
 
 def hostile_depth(rng, H, W, dtype):
@@ -132,11 +133,48 @@ def test_tiny_images_and_image_borders(shape):
     assert_same(depth_to_map_points(d, K, T, block_px=3), depth_to_map_points_reference(d, K, T, block_px=3))
 
 
+def outside_by_the_maps_rule(out):
+    """The points a map refuses (elevmap.map.settings.check_point_values' rules, written out)."""
+    p, v, h = out.points_map, out.height_var, out.horizontal_cov
+    with np.errstate(invalid="ignore"):
+        bad = ~np.all(np.isfinite(p) & (np.abs(p) <= 1e9), axis=1) | ~((v >= 1e-18) & (v <= 1e4))
+        bad |= ~(np.isfinite(h).all(axis=1) & (h[:, 0] >= 0) & (h[:, 2] >= 0))
+    return int(bad.sum())
+
+
+def test_points_outside_the_maps_bounds_are_counted_as_written():
+    """A camera 1e9 - 2 m from the origin looking at a wall 5 m away: the points more than 2 m to its
+    right lie beyond the 1e9 m a map takes, and the kernel counts exactly those; a pose covariance of
+    1e5 m^2 in height makes every height variance exceed 1e4 m^2; an ordinary frame counts none."""
+    K = D435.intrinsics(424, 240)
+    z = np.full((240, 424), 5.0)
+    z[:, :3] = 0.0                                            # some invalid pixels
+    T = np.eye(4)
+    T[0, 3] = 1e9 - 2.0
+    out = depth_to_map_points(z, K, T)
+    far = int((out.points_map[:, 0] > 1e9).sum())
+    assert 0 < far < len(out.pixel) // 2
+    assert out.n_outside == far == outside_by_the_maps_rule(out)
+    assert depth_to_map_points_reference(z, K, T).n_outside == far
+    P = np.diag([1e-4, 1e-4, 1e5, 1e-6, 1e-6, 1e-6])
+    out = depth_to_map_points(z, K, np.eye(4), P, nthreads=2)
+    assert out.n_outside == len(out.pixel) == outside_by_the_maps_rule(out) > 0
+    out = depth_to_map_points(z, K, np.eye(4))
+    assert out.n_outside == 0 == outside_by_the_maps_rule(out)
+
+
+def test_the_counted_bounds_are_the_maps():
+    from elevmap.map import settings
+
+    assert (nm.kernels.MAX_COORDINATE_M, nm.kernels.MIN_HEIGHT_VARIANCE, nm.kernels.MAX_POINT_VARIANCE) == (
+        settings.MAX_COORDINATE_M, settings.MIN_HEIGHT_VARIANCE, settings.MAX_POINT_VARIANCE)
+
+
 def test_all_invalid_frame_gives_no_points():
     K = D435.intrinsics(424, 240)
     for d in (np.zeros((240, 424), np.uint16), np.full((240, 424), np.nan)):
         out = depth_to_map_points(d, K, np.eye(4), depth_scale=0.001 if d.dtype == np.uint16 else None)
-        assert all(len(a) == 0 for a in out)
+        assert all(len(a) == 0 for a in out[:4]) and out.n_outside == 0
 
 
 def test_same_result_with_one_and_two_threads():
