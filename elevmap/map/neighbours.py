@@ -29,8 +29,9 @@ DerSimonian-Laird's weights are then the precise cells': in a window of a floor 
 the spread as the few precise cells do, and often falls below half the true spread
 (``tests/map/test_neighbours.py``), which makes a cell beside a box confident. Paule-Mandel weighs the
 cells by 1 / (P_j + tau^2), evenly once the spread exceeds their own variances (Veroniki et al. 2016,
-Res. Synth. Methods 7: 55-79, recommend it over DerSimonian-Laird). It costs a gather of each cell's
-window and a few Newton steps (``elevmap bench``).
+Res. Synth. Methods 7: 55-79, recommend it over DerSimonian-Laird). It costs an evaluation of Q over each
+cell's window per Newton step (``elevmap bench``); the first, which settles nearly every cell of a frame
+(a warm start is one small step from the root), runs for a row's cells side by side.
 
 The result is stored as ``neighbour_spread`` and the cell's variance becomes P + max(spread,
 neighbour_spread): the height at the centre of a cell in a window whose cells disagree is uncertain by
@@ -130,51 +131,135 @@ def _paule_mandel_step(y, p, k, t, w):
 
 
 @njit(**JIT)
-def _paule_mandel(y, p, k, t0, w):
+def _paule_mandel(y, p, k, t0, w, lo=0.0, hi=np.inf, steps=PM_MAX_STEPS):
     """Paule-Mandel tau^2 [m^2] of k cells: the root of Q(t) = sum w (y - m)^2 = k - 1, w = 1 / (p + t),
     from t0 (the cell's last root, else the DerSimonian-Laird value) by Newton's method on
     1 / Q(t) = 1 / (k - 1), which is linear in t when the p are equal (one step then;
-    t += Q (Q - (k - 1)) / ((k - 1) D)), kept inside a bracket [lo, hi] that it bisects when a step
-    leaves it. Q decreases in t; the caller ensures Q(0) > k - 1, so the root is positive. Converged
-    when |Q - (k - 1)| <= PM_TOL (k - 1), the bracket is below 1e-12 of t, or after a Newton step
-    (inside the bracket) below PM_STEP_TOL t, which is taken (at most PM_MAX_STEPS evaluations)."""
-    lo = 0.0
-    hi = np.inf
+    t += Q (Q - (k - 1)) / ((k - 1) D)), kept inside a bracket [lo, hi] (known to hold the root) that it
+    bisects when a step leaves it. Q decreases in t; the caller ensures Q(0) > k - 1, so the root is
+    positive. Converged when |Q - (k - 1)| <= PM_TOL (k - 1), the bracket is below 1e-12 of t, or after a
+    Newton step (inside the bracket) below PM_STEP_TOL t, which is taken (at most ``steps`` evaluations)."""
     t = t0
     km1 = k - 1.0
-    for _ in range(PM_MAX_STEPS):
+    for _ in range(steps):
         qq, dd = _paule_mandel_step(y, p, k, t, w)
-        f = qq - km1
-        if abs(f) <= PM_TOL * km1:
+        t, lo, hi, done = _paule_mandel_next(qq, dd, km1, t, lo, hi)
+        if done:
             break
-        if f > 0.0:
-            lo = t
-        else:
-            hi = t
-        if hi - lo <= 1e-12 * t:
-            break
-        tn = t + qq * f / (km1 * dd) if dd > 0.0 else np.inf
-        if not (tn > lo and tn < hi):
-            tn = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
-        elif abs(tn - t) <= PM_STEP_TOL * t:
-            return tn                         # a converged Newton step
-        t = tn
     return t
 
 
+@njit(inline="always", **JIT)
+def _paule_mandel_next(qq, dd, km1, t, lo, hi):
+    """One safeguarded Newton step of :func:`_paule_mandel` from Q(t) = qq, -dQ/dt = dd: returns the next
+    t, the new bracket and whether the solve has converged (t is then the root)."""
+    f = qq - km1
+    if abs(f) <= PM_TOL * km1:
+        return t, lo, hi, True
+    if f > 0.0:
+        lo = t
+    else:
+        hi = t
+    if hi - lo <= 1e-12 * t:
+        return t, lo, hi, True
+    tn = t + qq * f / (km1 * dd) if dd > 0.0 else np.inf
+    if not (tn > lo and tn < hi):
+        tn = 0.5 * (lo + hi) if hi < np.inf else 2.0 * t
+    elif abs(tn - t) <= PM_STEP_TOL * t:
+        return tn, lo, hi, True               # a converged Newton step
+    return tn, lo, hi, False
+
+
 @njit(**JIT)
-def _paule_mandel_cell(Hl, Pl, ii, c, r, t0, hw, pw, ww):
+def _paule_mandel_cell(Hl, Pl, ii, c, r, t0, hw, pw, ww, lo, hi, steps):
     """Gather the counting cells of the window whose top-left is (ii, c) in the padded copies Hl, Pl
     (heights relative to the reference, P; P = inf where a cell does not count) into hw, pw (branch
     free: every cell is written, the next one overwrites it if it does not count) and return their
-    Paule-Mandel tau^2, started at t0."""
+    Paule-Mandel tau^2, started at t0 inside the bracket [lo, hi], in at most ``steps`` evaluations."""
     k = 0
     for a in range(ii, ii + 2 * r + 1):
         for b in range(c, c + 2 * r + 1):
             hw[k] = Hl[a, b]
             pw[k] = Pl[a, b]
             k += Pl[a, b] < np.inf
-    return _paule_mandel(hw, pw, k, t0, ww)
+    return _paule_mandel(hw, pw, k, t0, ww, lo, hi, steps)
+
+
+#: Cells whose first Paule-Mandel evaluation runs side by side (one block of a row at a time).
+PM_BLOCK = 64
+
+
+@njit(**JIT)
+def _pm_weights(Hl, Pl, ii, b0, nb, r, t, wb, s1, sy):
+    """First pass of :func:`_paule_mandel_row` for the nb cells from column b0: the weights
+    w = 1 / (P + t) of every window offset into wb, their sums s1 and the sums of w y into sy. Each inner
+    loop reads and writes few arrays, through slices, so that the compiler vectorises it."""
+    L = 2 * r + 1
+    tb = t[b0:b0 + nb]
+    for c in range(nb):
+        s1[c] = 0.0
+        sy[c] = 0.0
+    q = 0
+    for a in range(L):
+        prow = Pl[ii + a, b0:]
+        hrow = Hl[ii + a, b0:]
+        for b in range(L):
+            wq = wb[q]
+            pr = prow[b:]
+            hr = hrow[b:]
+            for c in range(nb):
+                w = 1.0 / (pr[c] + tb[c])
+                wq[c] = w
+                s1[c] += w
+                sy[c] += w * hr[c]
+            q += 1
+
+
+@njit(**JIT)
+def _pm_moments(Hl, ii, b0, nb, r, wb, s1, sy, mb, qb, db):
+    """Second pass of :func:`_paule_mandel_row`: the means m = sy / s1 into mb, then Q = sum w (y - m)^2
+    into qb and D = sum w^2 (y - m)^2 into db."""
+    L = 2 * r + 1
+    for c in range(nb):
+        mb[c] = sy[c] / s1[c]
+        qb[c] = 0.0
+        db[c] = 0.0
+    q = 0
+    for a in range(L):
+        hrow = Hl[ii + a, b0:]
+        for b in range(L):
+            wq = wb[q]
+            hr = hrow[b:]
+            for c in range(nb):
+                d = hr[c] - mb[c]
+                e = wq[c] * d * d
+                qb[c] += e
+                db[c] += wq[c] * e
+            q += 1
+
+
+@njit(**JIT)
+def _paule_mandel_row(Hl, Pl, ii, c0, c1, r, t, qq, dd, buf):
+    """The first evaluation of Q and D (:func:`_paule_mandel_step`) for the cells c0..c1-1 of one row at once,
+    each at its own t[c]: the windows of neighbouring cells are neighbouring columns of the padded copies
+    Hl, Pl (top-left row ii), so each window offset is one contiguous loop over the cells, which the compiler
+    vectorises (a cell that does not count has P = inf, so w = 0 and it adds exact zeros). Each cell's sums
+    run over its window in row order, one offset after the other, whatever the block. Results go to
+    qq[c], dd[c]; ``buf`` has (2 r + 1)^2 + 5 rows of PM_BLOCK (weights, then five per-cell sums)."""
+    L2 = (2 * r + 1) ** 2
+    wb = buf[:L2]
+    s1 = buf[L2]
+    sy = buf[L2 + 1]
+    mb = buf[L2 + 2]
+    qb = buf[L2 + 3]
+    db = buf[L2 + 4]
+    for b0 in range(c0, c1, PM_BLOCK):
+        nb = min(PM_BLOCK, c1 - b0)
+        _pm_weights(Hl, Pl, ii, b0, nb, r, t, wb, s1, sy)
+        _pm_moments(Hl, ii, b0, nb, r, wb, s1, sy, mb, qb, db)
+        for c in range(nb):
+            qq[b0 + c] = qb[c]
+            dd[b0 + c] = db[c]
 
 
 @njit(parallel=True, **JIT)
@@ -182,8 +267,10 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
     """Map rows i0..i1, columns j0..j1 (inclusive, map index); buffer start (sx, sy); heights taken
     relative to ref [m]. The window sums are separable: along each row first (pass A, over the rows the
     windows reach), then down the columns (pass B); rows and columns beyond the map are zero padding.
-    Each cell writes only itself (pass B reads only A, pass A's copies of the heights and P, and its own
-    layers): race-free, and the same whatever the thread count."""
+    Paule-Mandel's first evaluation runs for a row's cells side by side (:func:`_paule_mandel_row`); the
+    few cells it does not settle continue one by one. Each cell writes only itself (pass B reads only A,
+    pass A's copies of the heights and P, and its own layers): race-free, and the same whatever the thread
+    count."""
     n = data.shape[1]
     r = radius
     C = j1 - j0 + 1
@@ -222,18 +309,26 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
             for t in range(2 * r + 1):
                 for c in range(C):
                     A[f, ii, c] += q[f, c + t]
+    L = 2 * r + 1
     for i in prange(i0, i1 + 1):
         bi = i + sx
         if bi >= n:
             bi -= n
         B = np.zeros((5, C))
-        hw = np.empty((2 * r + 1) ** 2)
-        pw = np.empty((2 * r + 1) ** 2)
-        ww = np.empty((2 * r + 1) ** 2)
-        for t in range(2 * r + 1):
+        hw = np.empty(L * L)
+        pw = np.empty(L * L)
+        ww = np.empty(L * L)
+        t0 = np.ones(C)                      # where each cell's solve starts (1: not solved, a dummy)
+        solve = np.zeros(C, dtype=np.bool_)
+        qq = np.empty(C)
+        dd = np.empty(C)
+        buf = np.empty((L * L + 5, PM_BLOCK))
+        for t in range(L):
             for f in range(5):
                 for c in range(C):
                     B[f, c] += A[f, i - i0 + t, c]
+        c0 = C
+        c1 = 0
         for c in range(C):
             bj = j0 + c + sy
             if bj >= n:
@@ -248,14 +343,32 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel):
             k = B[4, c]
             tau2 = 0.0
             if k >= 2.0:
-                qq = shh - sh * sh / s1
+                qd = shh - sh * sh / s1
                 den = s1 - s2 / s1
-                if den > 0.0 and qq > k - 1.0:
-                    tau2 = _dersimonian_laird_tau2(qq - (k - 1.0), s1, s2)
+                if den > 0.0 and qd > k - 1.0:
+                    tau2 = _dersimonian_laird_tau2(qd - (k - 1.0), s1, s2)
                     if paule_mandel:
                         prev = data[NEIGHBOUR_SPREAD, bi, bj]        # the last frame's root: a warm start
-                        t0 = prev if (prev > 0.0 and prev < np.inf) else tau2
-                        tau2 = _paule_mandel_cell(Hl, Pl, i - i0, c, r, t0, hw, pw, ww)
+                        t0[c] = prev if (prev > 0.0 and prev < np.inf) else tau2
+                        solve[c] = True
+                        c0 = min(c0, c)
+                        c1 = c + 1
+            if not solve[c]:
+                data[NEIGHBOUR_SPREAD, bi, bj] = tau2
+                data[VARIANCE, bi, bj] = p0 + max(s, tau2)
+        if c0 >= c1:
+            continue
+        _paule_mandel_row(Hl, Pl, i - i0, c0, c1, r, t0, qq, dd, buf)
+        for c in range(c0, c1):
+            if not solve[c]:
+                continue
+            bj = j0 + c + sy
+            if bj >= n:
+                bj -= n
+            h0, p0, s = _cell(data, bi, bj)
+            tau2, lo, hi, done = _paule_mandel_next(qq[c], dd[c], B[4, c] - 1.0, t0[c], 0.0, np.inf)
+            if not done:
+                tau2 = _paule_mandel_cell(Hl, Pl, i - i0, c, r, tau2, hw, pw, ww, lo, hi, PM_MAX_STEPS - 1)
             data[NEIGHBOUR_SPREAD, bi, bj] = tau2
             data[VARIANCE, bi, bj] = p0 + max(s, tau2)
 
