@@ -510,3 +510,22 @@ def test_direct_measurements_read_known_effects():
                          {"name": "static_pattern", "params": {"sigma_px": 0.1, "length_px": 5.0, "seed": 0}}], out)
     by = {r["quantity"]: r for r in rows}
     assert by["band_margin_px"]["agrees"] and not by["static_sigma_d_px"]["agrees"]
+
+
+def test_direct_frame_offset_reads_the_per_frame_offset():
+    from noise_model.analysis.capture_data import CaptureData
+    from noise_model.analysis.diagnosis.direct import check_fitted, direct_measurements
+
+    cam = {"width": 424, "height": 240, "fx": 212.0, "fy": 212.0, "ppx": 211.5, "ppy": 119.5,
+           "depth_scale": 0.001, "baseline_m": 0.05}
+    caps, plain = [], []
+    for i, d in enumerate((1.0, 1.3, 1.6)):
+        g = CaptureGeometry.from_capture_set_entry(cam, {"id": f"w{i}", "target": {"kind": "wall", "distance_m": d}})
+        caps.append(CaptureData.from_units(g, simulate_capture(g, 20, np.random.default_rng([4, i]), D435,
+                                                               [E.frame_offset(0.04)])))
+        plain.append(CaptureData.from_units(g, simulate_capture(g, 20, np.random.default_rng([4, i]), D435)))
+    got = direct_measurements(caps)["pooled"]["frame_offset_px"]
+    assert got == pytest.approx(0.04, rel=0.35)                      # 3 captures x 19 degrees of freedom
+    assert direct_measurements(plain)["pooled"]["frame_offset_px"] < 0.005   # white noise: its mean over the image
+    rows = check_fitted([{"name": "frame_offset", "params": {"sigma_px": got}}], direct_measurements(caps))
+    assert rows[0]["quantity"] == "frame_offset_px" and rows[0]["ratio"] == pytest.approx(1.0)

@@ -18,6 +18,7 @@ import noise_model as nm
 from noise_model.sim import effects as E
 from noise_model.analysis.capture_data import CaptureData, CaptureGeometry, simulate_capture
 from noise_model.sim import Box, Scene, add_noise, simulate_walk
+from noise_model.analysis.effect_fits import residuals as R
 
 CAMERA = {"width": 424, "height": 240, "fx": 212.0, "fy": 212.0, "ppx": 211.5, "ppy": 119.5,
           "depth_scale": 0.001, "baseline_m": 0.05}
@@ -53,7 +54,7 @@ def _pseudo_real(name, params, seed):
 # registry
 # ---------------------------------------------------------------------------------------------
 NAMES = ("disparity_noise", "disparity_quantization", "depth_bias", "invalid_band", "dropout", "correlated_noise",
-         "static_pattern", "static_noise", "flying_pixels", "edge_fattening", "outliers", "axial_refit")
+         "static_pattern", "static_noise", "flying_pixels", "edge_fattening", "outliers", "axial_refit", "frame_offset")
 
 
 def test_the_catalogue_identifiers_and_registries_agree():
@@ -83,7 +84,7 @@ def test_bad_parameters_raise_and_name_the_parameter():
            "dropout": {"p_1m": 1.0}, "correlated_noise": {"length_px": 0.0}, "static_pattern": {"sigma_px": 3.0},
            "static_noise": {"sigma_z_fraction": 11.0},
            "flying_pixels": {"fraction": 1.5}, "edge_fattening": {"width_px": -1.0},
-           "outliers": {"fraction": 0.0}, "axial_refit": {"c0": 0.0}}
+           "outliers": {"fraction": 0.0}, "axial_refit": {"c0": 0.0}, "frame_offset": {"sigma_px": 0.0}}
     assert set(bad) == set(NAMES)
     for name, params in bad.items():
         (key,) = params
@@ -327,6 +328,67 @@ def test_fractions_of_sigma_z_follow_the_refitted_noise_after_axial_refit():
     assert E.within_tolerance("correlated_noise", {"sigma_z_fraction": 0.8, "length_px": 3.0}, fit)[0], fit
 
 
+def test_axial_refit_counts_the_base_effects_variance_where_the_reference_is_truncated():
+    # Monte Carlo: a quieter unit (refit) with a correlated field of 1.0 sigma_z on walls at 0 and 65 deg; at
+    # 65 deg the paper's angle term truncates the reference noise, so the refit's fit takes the correlated
+    # field's share of the temporal variance in closed form there (1 + k^2): it must not read it as white
+    true = {"c0": 0.0006, "c1": 0.0004, "c2": 0.0024, "c_theta": 0.012}
+    corr = E.correlated_noise(sigma_z_fraction=1.0, length_px=3.0)
+    walls = [_wall(d, y) for d in (0.6, 1.0, 1.5, 2.0) for y in (0.0, 65.0)]
+    real = [CaptureData.from_units(g, simulate_capture(g, FRAMES, np.random.default_rng([21, i]),
+                                                       effects=[E.axial_refit(**true), corr]))
+            for i, g in enumerate(walls)]
+    fit = E.fit_effect("axial_refit", real, base_effects=[corr], seed=5)
+    ok, errors = E.within_tolerance("axial_refit", true, fit)
+    assert ok, (fit, errors)
+    # counted as white, the angle term would come out ~sqrt(2) times too large
+    assert fit["c_theta"] == pytest.approx(true["c_theta"], rel=0.1)
+    # the closed form itself: k^2 of each correlated field, z^4 s^2 / (f B)^2 of each disparity noise, the rounding
+    zz = np.array([1.0, 2.0])
+    f, e = R._closed_form_base([corr, E.static_noise(0.7), E.frame_offset(0.02), E.disparity_quantization(5)],
+                               zz, FB / zz, FB, 0.001)
+    assert f == pytest.approx(2.0)
+    assert e == pytest.approx((0.02 ** 2 + 2.0 ** -10 / 12) * 8.5 / FB ** 2 + 1e-6 / 12)
+
+
+def test_frame_offset_moves_every_pixel_of_a_frame_alike():
+    g = _wall(1.5, 30.0)
+    eff = E.frame_offset(0.05)
+    frames = simulate_capture(g, 40, np.random.default_rng(3), effects=[eff]).astype(float) * 0.001
+    plain = simulate_capture(g, 40, np.random.default_rng(3)).astype(float) * 0.001
+    z, _ = g.render()
+    centre = (slice(100, 140), slice(190, 230))
+    d = FB / frames[:, centre[0], centre[1]]
+    dev = d - d.mean(axis=0)
+    offsets = dev.reshape(40, -1).mean(axis=1)
+    assert offsets.std(ddof=1) == pytest.approx(0.05, rel=0.3)          # 40 draws of N(0, 0.05^2)
+    # the rest of a frame's deviation is the reference's: within a frame every pixel moved alike
+    d0 = FB / plain[:, centre[0], centre[1]]
+    dev0 = d0 - d0.mean(axis=0)
+    rest = (dev - offsets[:, None, None]).std()
+    assert rest == pytest.approx(dev0.std(), rel=0.05)
+    # the per-pixel temporal variance grows by the offsets' variance times z^4 / (f B)^2
+    grow = frames[:, centre[0], centre[1]].var(axis=0, ddof=1).mean() - plain[:, centre[0], centre[1]].var(
+        axis=0, ddof=1).mean()
+    assert grow == pytest.approx(np.mean(offsets.var(ddof=1) * z[centre] ** 4 / FB ** 2), rel=0.1)
+
+
+def test_frame_offset_and_correlated_noise_are_told_apart():
+    # data with both: each fit reads its own effect, the correlated field's length does not stretch to take the
+    # frame-wide offset
+    both = [E.correlated_noise(sigma_z_fraction=0.8, length_px=3.0), E.frame_offset(0.04)]
+    real = [CaptureData.from_units(g, simulate_capture(g, FRAMES, np.random.default_rng([31, i]), effects=both))
+            for i, g in enumerate(WALLS)]
+    fit = E.fit_effect("correlated_noise", real, seed=5)
+    assert E.within_tolerance("correlated_noise", both[0].params, fit)[0], fit
+    fit = E.fit_effect("frame_offset", real, seed=5)
+    assert E.within_tolerance("frame_offset", both[1].params, fit)[0], fit
+    # one frame cannot give it: the fit says so
+    single = [CaptureData.from_units(g, simulate_capture(g, 1, np.random.default_rng(i))) for i, g in enumerate(WALLS)]
+    with pytest.raises(ValueError, match="frame_offset: needs captures of >= 2 frames"):
+        E.fit_effect("frame_offset", single)
+
+
 def test_a_disparity_model_simulates_at_the_captures_focal_length():
     g = _wall(1.5, 30.0)
     model = nm.D435.with_disparity(0.08)
@@ -442,7 +504,7 @@ def _assert_valid(name, params):
     E.make_effect(name, **params)                                   # the factory accepts them
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", [n for n in NAMES if n != "frame_offset"])          # one frame cannot give it
 def test_single_frame_fit_recovers_parameters_within_its_tolerance(name):
     # one frame per capture: temporal statistics give way to the frame's spatial ones
     seed = 2000 + NAMES.index(name)
@@ -597,8 +659,8 @@ def test_fits_on_the_genuine_d435_frames():
     for name in NAMES:
         try:
             fit = E.fit_effect(name, caps, rois=rois)
-        except ValueError as exc:                                   # edge effects: no board before a wall
-            assert name in ("edge_fattening", "flying_pixels"), (name, exc)
+        except ValueError as exc:       # edge effects: no board before a wall; frame_offset: single frames
+            assert name in ("edge_fattening", "flying_pixels", "frame_offset"), (name, exc)
             continue
         _assert_valid(name, fit)
     # the D435's 5 fractional bits (librealsense disparity-transform.h), on the 848 x 480 frame at the

@@ -195,6 +195,8 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
             add("static_length_px", name, params["length_px"], p["static_length_px"])
             if name == "static_pattern":
                 add("static_sigma_d_px", name, params["sigma_px"], p["static_sigma_d_px"])
+        elif name == "frame_offset":
+            add("frame_offset_px", name, params["sigma_px"], p["frame_offset_px"])
     if model_direct is not None:
         sim = {r["id"]: r for r in model_direct["captures"]}
         for key in ("temporal_sigma_d_px", "static_sigma_d_px"):

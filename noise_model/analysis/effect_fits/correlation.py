@@ -89,6 +89,17 @@ def _standardised_residuals(c, m, sig, nf):
     return x, k.astype(np.float32)
 
 
+def _remove_frame_offset(x, w, q):
+    """x (F, H, W) less, per frame, its least-squares multiple of q (H, W) over the weighted pixels
+    (w (F, H, W) 0/1): a_t = sum w x q / sum w q^2, x_t - a_t q where w > 0. With q the depth change of a
+    unit disparity offset in units of x (z^2 / (f B sigma)), this removes a frame-wide disparity offset
+    (the ``frame_offset`` effect) and leaves a field correlated over a few pixels almost whole."""
+    num = np.einsum("thw,thw,hw->t", w, x, q, dtype=np.float64)
+    den = np.einsum("thw,hw->t", w, q * q, dtype=np.float64)
+    a = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    return (x - (a[:, None, None] * q[None] * w)).astype(np.float32)
+
+
 def _spatial_standardised_residual(c, m, sig, fb):
     """One-frame counterpart of :func:`_standardised_residuals`: (z - z_plane) / sigma at the mask's
     pixels, z_plane = f B / (the frame's best disparity plane, :func:`_plane_residual`), values more
@@ -115,7 +126,10 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
     the effect then scales with: :func:`_base_sigma_model`), values
     more than 8 sigma from the pixel's temporal median (outliers) left out of the mean and the sums: the
     temporal mean removes everything static. The effect adds f g with g a unit field of correlation
-    rho(h), so x's lag covariance (over the first 6 frames) grows by f^2 (1 - 1/F) rho(h). The
+    rho(h), so x's lag covariance (over the first 6 frames) grows by f^2 (1 - 1/F) rho(h). Each frame's
+    frame-wide disparity offset is removed first, in the real data and in the base alike
+    (:func:`_remove_frame_offset`): a per-frame offset (``frame_offset``) is a correlation of infinite
+    length, which the field's length would otherwise stretch to take. The
     real-minus-base covariances at lags 0-11 px (rows and columns), divided by (1 - 1/F) and pooled
     over captures by pair counts, give f^2 and l (:func:`_fit_gaussian_cov`).
 
@@ -142,8 +156,10 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
                                                 _base_sigma_model(model, base_effects, g)), 1.0)
         if c.n_frames >= 2:
             nf = min(c.n_frames, _CORR_FRAMES)
+            q = np.where(m, z * z / (fb * sig), 0.0)
             xr, wr = _standardised_residuals(c, m, sig, nf)
             xb, wb = _standardised_residuals(b, m, sig, nf)
+            xr, xb = _remove_frame_offset(xr, wr, q), _remove_frame_offset(xb, wb, q)
             gain = 1.0 - 1.0 / c.n_frames
         else:
             rr = _spatial_standardised_residual(c, m, sig, fb)

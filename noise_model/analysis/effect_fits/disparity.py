@@ -4,6 +4,7 @@
 * disparity_quantization: the coarsest 2^-bits px lattice the depth values lie on, searched at the f B
   the device uses (:func:`disparity_lattice` reports it).
 * depth_bias: linear regression of the real on the base simulation's trimmed-mean disparities.
+* frame_offset: method of moments on the variance over frames of each frame's mean disparity deviation.
 """
 
 from __future__ import annotations
@@ -19,12 +20,12 @@ from ...d435 import D435, SensorModel
 from ...sim.effects.base import check_sensor_model
 from ..capture_data import check_captures
 from ._common import (
-    _MAX_SAMPLE_PX, _base_sims, _check_rois, _nominal, _pixels, _plane_residual, _robust_mean_square,
-    _robust_temporal_var, _roi, _sample_mask, _sigma_ref_px, _temporal_min_count,
+    _MAX_SAMPLE_PX, _base_sims, _check_rois, _disp_sigma, _frame, _interior, _nominal, _pixels, _plane_residual,
+    _robust_mean_square, _robust_temporal_var, _roi, _sample_mask, _sigma_ref_px, _temporal_min_count,
 )
 from .spec import FitSpec, select_captures
 
-__all__ = ["disparity_lattice", "LATTICE_FB_RANGE"]
+__all__ = ["disparity_lattice", "LATTICE_FB_RANGE", "frame_offset_variance"]
 
 
 # ---- disparity_noise -------------------------------------------------------------------------------
@@ -393,6 +394,77 @@ def _fit_depth_bias(real, base, model, rois=None, **_):
 
 
 #: Registry records (:class:`~.spec.FitSpec`) of this module's fits.
+# ---- frame_offset ----------------------------------------------------------------------------------
+def frame_offset_variance(c, m, weight) -> float:
+    """The variance over frames of a capture's frame-wide disparity offset [px^2] (NaN when undefined).
+
+    On the mask's pixels with data in every frame: dev_t = d_t - the pixel's temporal mean (d = f B / z
+    [px]); pixels with a deviation beyond 8 robust sigmas of ``weight``-scaled deviations in any frame
+    (outliers) left out; o_t = sum_i w_i dev_t,i / sum_i w_i with w_i = ``weight`` (H, W) (e.g. the
+    inverse of the pixel's expected noise variance: any weights give a common offset exactly, these the
+    least noise from the rest). Returns sum_t o_t^2 / (F - 1): the offset's variance plus the
+    weighted mean's share of the per-pixel noise. Needs >= 2 frames and >= 100 pixels (else NaN).
+    """
+    F = c.n_frames
+    if F < 2:
+        return float("nan")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = c.geometry.fb_px_m / c.depth_m[:, m]
+    ok = np.all(np.isfinite(d), axis=0)
+    if ok.sum() < 100:
+        return float("nan")
+    d, w = d[:, ok], weight[m][ok]
+    dev = d - d.mean(axis=0)
+    a = np.abs(dev) * np.sqrt(w)
+    s = 1.4826 * float(np.median(a))
+    keep = np.all(a <= 8.0 * max(s, 1e-12), axis=0)
+    if keep.sum() < 100:
+        return float("nan")
+    o = dev[:, keep] @ w[keep] / float(np.sum(w[keep]))
+    return float(np.sum(o * o) / (F - 1))
+
+
+def _fit_frame_offset(real, base, model, rois=None, **_):
+    """Method of moments on the variance over frames of the frame-wide disparity offset.
+
+    The effect adds sigma_px n_t to every pixel's disparity in frame t, so the variance over frames of a
+    frame's weighted mean deviation from the temporal mean (:func:`frame_offset_variance`, weights
+    1 / s_i^2 with s_i the reference's disparity noise at the pixel, :func:`_disp_sigma`) grows by
+    sigma_px^2 whatever the per-pixel noise is; the base simulation's (the per-pixel noise's share, and
+    any offset the base effects make) is subtracted. Per capture (interior pixels with data in every
+    frame), v_real - v_base; pooled with weights F - 1 (the degrees of freedom of each variance), then
+    sigma_px = sqrt(max(pooled, 0)).
+
+    Single frames: a frame-wide offset of one frame is a depth bias of that frame (the target's plane
+    moves), so one frame cannot give it: ValueError.
+    """
+    num = den = 0.0
+    single = False
+    for c, b in zip(real, base):
+        if c.n_frames < 2:
+            single = True
+            continue
+        g = c.geometry
+        z, th, _, fb = _nominal(g, model)
+        m = _interior(g, model, _roi(rois, g))
+        if m.sum() < 100:
+            continue
+        w = np.zeros(m.shape)
+        ts = np.minimum(np.abs(th[m]), model.theta_max_rad)
+        w[m] = 1.0 / _disp_sigma(z[m], ts, _frame(model, g), g.depth_scale, fb) ** 2
+        vr, vb = frame_offset_variance(c, m, w), frame_offset_variance(b, m, w)
+        if not (np.isfinite(vr) and np.isfinite(vb)):
+            continue
+        num += (c.n_frames - 1) * (vr - vb)
+        den += c.n_frames - 1
+    if not den:
+        if single:
+            raise ValueError("frame_offset: needs captures of >= 2 frames (one frame cannot tell a frame-wide "
+                             "offset from a depth bias)")
+        raise ValueError("frame_offset: no capture with >= 100 interior pixels with data in every frame")
+    return {"sigma_px": float(math.sqrt(max(num / den, 1e-16)))}
+
+
 SPECS = (
     FitSpec("disparity_noise", _fit_disparity_noise, needs=("wall", "board"),
             tolerance={"s_px": ("rel", 0.05)},
@@ -406,4 +478,8 @@ SPECS = (
     FitSpec("depth_bias", _fit_depth_bias, needs=("wall", "board"),
             tolerance={"scale": ("abs", 0.001), "offset_px": ("abs", 0.006)},
             tolerance_single_frame={"scale": ("abs", 0.002), "offset_px": ("abs", 0.02)}),
+    # needs >= 2 frames per capture: nothing on single frames
+    FitSpec("frame_offset", _fit_frame_offset, needs=("wall", "board"),
+            tolerance={"sigma_px": ("rel", 0.25)},
+            tolerance_single_frame={}),
 )

@@ -116,6 +116,46 @@ _AXIAL_Z_RATIO = 2.0
 _AXIAL_ANGLE_SHARE = 0.3
 
 
+def _closed_form_base(base_effects, zz, dtrue, fb, depth_scale):
+    """The base effects' share of the per-pixel temporal variance of z, in closed form: v = f sigma^2 + e.
+
+    For bins where the base simulations cannot give f and e (the reference noise truncated at grazing
+    angles), from the effects' parameters (Effect objects with ``name`` and ``params``), at the bin's
+    true depths zz (N,) [m] and disparities dtrue (N,) [px]:
+
+    * ``correlated_noise``: a fresh field of fraction k of the sigma_z in effect each frame adds
+      k^2 sigma^2 to every pixel's temporal variance (f += k^2), or ``sigma_m``^2 to e;
+    * ``depth_bias``: z' = scale f B / (d + offset) scales the noise before it by
+      scale (d / (d + offset))^2 (the share of sigma^2 times its square, the bin's mean);
+    * ``disparity_noise``, ``frame_offset``: s^2 in disparity, z^4 s^2 / (f B)^2 in depth (e);
+    * ``disparity_quantization``: the lattice's step^2 / 12 in disparity (Sheppard: the noise is wide
+      against the step where this is used);
+    * static fields (``static_pattern``, ``static_noise``), masks and edge effects: nothing temporal on a
+      target's interior; ``outliers``: left to the robust variance.
+
+    Plus the depth unit's rounding, depth_scale^2 / 12. Returns (f, e [m^2]).
+    """
+    k2, e_m, e_px, gain = 0.0, 0.0, 0.0, 1.0
+    for eff in base_effects or ():
+        name, p = getattr(eff, "name", None), getattr(eff, "params", {})
+        if name == "correlated_noise":
+            if p.get("sigma_m") is not None:
+                e_m += float(p["sigma_m"]) ** 2
+            else:
+                k2 += float(p["sigma_z_fraction"]) ** 2
+        elif name == "depth_bias":
+            gain = float(np.mean((float(p["scale"]) * (dtrue / (dtrue + float(p["offset_px"]))) ** 2) ** 2))
+        elif name == "disparity_noise":
+            e_px += float(p["s_px"]) ** 2
+        elif name == "frame_offset":
+            e_px += float(p["sigma_px"]) ** 2
+        elif name == "disparity_quantization":
+            e_px += (2.0 ** -int(p["subpixel_bits"])) ** 2 / 12.0
+    e = e_m + e_px * float(np.mean(zz ** 4)) / fb ** 2 + depth_scale ** 2 / 12.0
+    # the depth bias acts first (ORDER): it scales the refitted noise, not the correlated field after it
+    return gain + k2, e
+
+
 def _pixel_variances(c, m, sref, fb, zs):
     """Per-pixel variance estimates of z [m^2] at the mask's pixels and the number of values behind each
     (N,): the robust temporal variance (:func:`_robust_temporal_var`) with >= 2 frames; with one frame,
@@ -153,9 +193,11 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
     angle term at grazing angles, must not take the weight from those bins),
     non-negative coefficients (bounded least squares started from the non-negative linear fit of
     sqrt(y)). Bins whose real sigma exceeds 15 % of z are left out; where the reference's sigma does
-    (its noise is truncated at z <= 0 there, so the base simulations cannot give f and e), f = 1 and
-    e = the rounding's variance, so that a real camera quieter than the paper's angle term at grazing
-    angles still constrains the fit.
+    (its noise is truncated at z <= 0 there, so the base simulations cannot give f and e), f and e are
+    the base effects' share in closed form (:func:`_closed_form_base`: 1 + k^2 for a correlated field of
+    k sigma_z, nothing for a static one, the disparity noises' z^4 s^2 / (f B)^2, the rounding), so that a
+    real camera quieter than the paper's angle term at grazing angles still constrains the fit, and the
+    variance the base effects add there is not counted as white.
 
     Single frames: a capture of one frame has no temporal variance; the squared residual of its frame
     about the target's best plane (:func:`_pixel_variances`) stands in, pixel by pixel (the paper's own
@@ -207,9 +249,10 @@ def _fit_axial_refit(real, base, model, base_effects=(), seed=0, cache=None, roi
                     continue
                 e = v_b - f * s2
             else:
-                # only the rounding (Sheppard); also where the reference noise is truncated at z <= 0, so
-                # that the base simulations cannot give f and e, but the real variance still measures sigma
-                f, e = 1.0, g.depth_scale ** 2 / 12.0
+                # where the reference noise is truncated at z <= 0 the base simulations cannot give f and e,
+                # but the real variance still measures sigma: the base effects' share in closed form (only the
+                # rounding without base effects)
+                f, e = _closed_form_base(base_effects, zz, fb / zz, fb, g.depth_scale)
             y2 = (v_r - e) / f
             if y2 <= 0 or math.sqrt(y2) > 0.15 * float(np.mean(zz)):
                 continue

@@ -14,7 +14,7 @@ Modules
 :mod:`.base`
     The hook contract, :class:`Effect`, :func:`gaussian_random_field`, disparity helpers.
 :mod:`.disparity`
-    ``disparity_noise``, ``disparity_quantization``, ``depth_bias``.
+    ``disparity_noise``, ``disparity_quantization``, ``depth_bias``, ``frame_offset``.
 :mod:`.coverage`
     ``invalid_band``, ``dropout``.
 :mod:`.correlation`
@@ -46,6 +46,8 @@ Effects (identifiers; canonical order :data:`ORDER`)
     The foreground's disparity spreads a few px into the background at depth edges.
 ``flying_pixels`` (E8)
     Pixels next to depth edges take depths between the two sides.
+``frame_offset`` (E4, E9)
+    A disparity offset common to the whole frame, drawn afresh every frame.
 ``disparity_quantization`` (E2)
     Disparity on a lattice of 2^-bits px (the D435: 5 bits, 1/32 px).
 ``invalid_band`` (E6)
@@ -79,6 +81,10 @@ Effects (identifiers; canonical order :data:`ORDER`)
 ``flying_pixels``
     edge_left / edge_right regions only: depths between board and background (residual tails, W1,
     temporal std); interior unchanged.
+``frame_offset``
+    the standard deviation over frames of a frame's mean disparity deviation from the temporal mean
+    (sigma_px sqrt(1 - 1/F)); temporal std + sigma_px z^2 / (f B) in quadrature; nothing static, nothing
+    within a frame.
 ``disparity_quantization``
     the lattice of depth values (a comb at f B 2^bits / n), temporal std + Delta^2 / 12 at far range.
 ``invalid_band``
@@ -88,7 +94,8 @@ Effects (identifiers; canonical order :data:`ORDER`)
 
 Pairs a statistic separates: axial_refit / correlated_noise (correlation length), axial_refit /
 disparity_noise (angle dependence, skew), static_pattern / correlated_noise (temporal std),
-static_pattern / static_noise (angle and depth dependence), static_pattern / depth_bias (image mean ~0
+static_pattern / static_noise (angle and depth dependence), frame_offset / correlated_noise (the
+frame-wide mean deviation vs the lag correlation within a frame), static_pattern / depth_bias (image mean ~0
 vs systematic with z), outliers / disparity_noise (tails vs core width), invalid_band / dropout (left
 band only vs everywhere), flying_pixels / edge_fattening (intermediate depths vs foreground depth).
 
@@ -120,7 +127,7 @@ from . import correlation, coverage, disparity, edges, residuals
 from .base import Effect, gaussian_random_field
 from .correlation import CORRELATED_NOISE_DEFAULTS, correlated_noise, static_noise, static_pattern
 from .coverage import dropout, invalid_band
-from .disparity import DEPTH_BIAS_DEFAULTS, depth_bias, disparity_noise, disparity_quantization
+from .disparity import DEPTH_BIAS_DEFAULTS, depth_bias, disparity_noise, disparity_quantization, frame_offset
 from .edges import EDGE_JUMP_PX, edge_fattening, flying_pixels
 from .residuals import axial_refit, outliers
 from .spec import EffectSpec
@@ -131,7 +138,8 @@ __all__ = ["Effect", "gaussian_random_field", "EFFECTS", "make_effect", "ORDER",
            "DEPTH_BIAS_DEFAULTS", "EDGE_JUMP_PX", "disparity_lattice", "LATTICE_FB_RANGE",
            "FIT_TOLERANCE_SINGLE_FRAME", "EffectSpec", "SPECS",
            "axial_refit", "depth_bias", "static_pattern", "static_noise", "disparity_noise", "correlated_noise",
-           "outliers", "edge_fattening", "flying_pixels", "disparity_quantization", "invalid_band", "dropout"]
+           "outliers", "edge_fattening", "flying_pixels", "frame_offset", "disparity_quantization", "invalid_band",
+           "dropout"]
 
 #: The registry: effect name -> :class:`EffectSpec`, one record per effect, in the catalogue's order
 #: (the order of help texts and of "known: ..." messages). Each family module lists its own records.
@@ -143,8 +151,8 @@ SPECS = MappingProxyType({s.name: s for module in (disparity, coverage, correlat
 EFFECTS = MappingProxyType({name: s.factory for name, s in SPECS.items()})
 
 #: The order in which the device applies them (docs/depth-effects.md, "Composition order"): the noise's
-#: magnitude, calibration biases, disparity noise (white, correlated, gross), edge effects, the 2^-bits
-#: lattice, then the masks (:attr:`EffectSpec.order`). :func:`canonical_order` sorts a list of effects by it.
+#: magnitude, calibration biases, disparity noise (white, correlated, gross), edge effects, the frame-wide
+#: offset, the 2^-bits lattice, then the masks (:attr:`EffectSpec.order`). :func:`canonical_order` sorts a list of effects by it.
 ORDER = tuple(s.name for s in sorted(SPECS.values(), key=lambda s: s.order))
 
 #: Ranges the gap self-test draws each parameter from (uniformly; :data:`INTEGER_PARAMS` rounded), for

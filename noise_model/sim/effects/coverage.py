@@ -129,11 +129,11 @@ def dropout(p_1m: float = 0.05, k_z: float = 1.0, k_theta: float = 1.0, length_p
 
 #: Registry records (:class:`~.spec.EffectSpec`) of this module's effects.
 SPECS = (
-    EffectSpec("invalid_band", invalid_band, order=9,
+    EffectSpec("invalid_band", invalid_band, order=10,
                # w0 of E6: 4-10 px at 848 x 480, 2-8 px here
                param_ranges={"margin_px": (2.0, 8.0)},
                valid={"margin_px": (-50.0, 200.0)}),
-    EffectSpec("dropout", dropout, order=10,
+    EffectSpec("dropout", dropout, order=11,
                # 3-12 % missing at 1 m fronto-parallel, rising with z and theta; blobs of 1.5-4 px
                param_ranges={"p_1m": (0.03, 0.12), "k_z": (0.5, 1.5), "k_theta": (0.5, 1.5), "length_px": (1.5, 4.0)},
                valid={"p_1m": (1e-9, 1.0 - 1e-9), "k_z": (-20.0, 20.0), "k_theta": (-20.0, 20.0),

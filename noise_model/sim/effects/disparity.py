@@ -3,6 +3,7 @@
 * :func:`disparity_noise` (E1): Gaussian noise in disparity, not in depth.
 * :func:`disparity_quantization` (E2): disparity on a lattice of 2^-bits px.
 * :func:`depth_bias` (E4): a depth scale error and a disparity offset.
+* :func:`frame_offset` (E4, E9): a disparity offset common to the whole frame, drawn afresh every frame.
 
 Each works on d = f B / z [px] (:mod:`.base`) and maps back to depth z' = f B / d'. Physics and sources:
 the sections cited of ``docs/depth-effects.md``.
@@ -17,7 +18,7 @@ from ...d435 import D435
 from .base import Effect, _fb, _to_depth, _to_disparity
 from .spec import EffectSpec
 
-__all__ = ["disparity_noise", "disparity_quantization", "depth_bias", "DEPTH_BIAS_DEFAULTS"]
+__all__ = ["disparity_noise", "disparity_quantization", "depth_bias", "frame_offset", "DEPTH_BIAS_DEFAULTS"]
 
 
 #: Defaults of :func:`depth_bias`: -1 % scale (half the -1.9 % of an out-of-box D435, inside the
@@ -59,6 +60,15 @@ class _DepthBias(Effect):
             out = np.where(d > 0, self.params["scale"] * fb / d, np.nan)
         out[~np.isfinite(z) | (z <= 0)] = np.nan
         return out
+
+
+class _FrameOffset(Effect):
+    name = "frame_offset"
+
+    def _apply(self, z, theta, rng, context):
+        fb = _fb(context, self.name)
+        offset = float(rng.standard_normal()) * self.params["sigma_px"]
+        return _to_depth(fb, _to_disparity(fb, z) + offset)
 
 
 def disparity_noise(s_px: float = 0.08) -> Effect:
@@ -141,13 +151,51 @@ def depth_bias(scale: float = DEPTH_BIAS_DEFAULTS["scale"], offset_px: float = D
     return _DepthBias({"scale": s, "offset_px": off, "baseline_m": b})
 
 
+def frame_offset(sigma_px: float = 0.015) -> Effect:
+    """A disparity offset common to the whole frame, drawn afresh every frame (E4, E9).
+
+    Physics and source (docs/depth-effects.md, E4 and E9): whatever moves the two imagers' rays against
+    each other between frames shifts every pixel's disparity by about the same amount: each imager's
+    pointing jitter (a sideways image shift of one imager against the other is a disparity offset of f
+    times the angle), the small thermal and mechanical motion of the imagers on their stiffener. A
+    calibration offset that stays (:func:`depth_bias`) is the mean of it; what changes from frame to
+    frame is this effect. The paper's model draws every pixel independently, and no per-pixel field
+    expresses it: a frame-wide part of the temporal noise is a correlation of infinite length, which a
+    Gaussian random field (:func:`~.correlation.correlated_noise`) can only imitate by stretching its
+    correlation length. A temporal mean over many frames removes it; a single frame cannot tell it from
+    a depth bias.
+
+    Forward model: one standard normal n per frame from ``rng`` (one value per call), d = f B / z,
+    d' = d + ``sigma_px`` n at every pixel with data, z' = f B / d' (no data where d' <= 0). The
+    per-pixel temporal variance grows by sigma_px^2 z^4 / (f B)^2; the frame's mean deviation from the
+    temporal mean, in disparity, has the standard deviation ``sigma_px`` sqrt(1 - 1/F) over F frames;
+    nothing static, and within one frame every pixel moves alike.
+
+    D435 values: the physical D435 simulation has one (each imager's pointing jitter,
+    docs/physical-d435.md, where its size was fitted to a real unit's frame-wide offset); its size on a
+    real unit depends on the mounting and the temperature, a fraction of the per-pixel temporal sigma_d
+    [estimate]. ``sigma_px`` in (0, 2] px of the simulated stream.
+
+    Parameters
+    ----------
+    sigma_px : float
+        Standard deviation of the per-frame offset [px of the simulated stream], in (0, 2].
+
+    Returns
+    -------
+    Effect
+        ``effect(z, theta, rng, context) -> z``; one standard normal drawn from ``rng`` per call.
+    """
+    return _FrameOffset({"sigma_px": check_scalar_range(sigma_px, "sigma_px", 0.0, 2.0, open_lo=True)})
+
+
 #: Registry records (:class:`~.spec.EffectSpec`) of this module's effects.
 SPECS = (
     EffectSpec("disparity_noise", disparity_noise, order=3,
                # 0.04 px adds 3.8 mm at 1 m / 15 mm at 2 m at 424 x 240 (the paper: 5.7 / 18 mm)
                param_ranges={"s_px": (0.04, 0.12)},
                valid={"s_px": (1e-6, 5.0)}),
-    EffectSpec("disparity_quantization", disparity_quantization, order=8,
+    EffectSpec("disparity_quantization", disparity_quantization, order=9,
                # 3-6 fractional bits: lattice 1.5-12 mm at 1 m, 5.9-47 mm at 2 m (the D435: 5)
                param_ranges={"subpixel_bits": (3, 6)},
                valid={"fb_rel": (-0.05, 0.05)},
@@ -157,4 +205,10 @@ SPECS = (
                # an out-of-box D435 reads short)
                param_ranges={"scale": (0.975, 0.99), "offset_px": (0.02, 0.08)},
                valid={"scale": (0.5, 2.0), "offset_px": (-5.0, 5.0)}),
+    # after the edge effects (it moves the whole frame, edges too), before the lattice the device outputs on
+    EffectSpec("frame_offset", frame_offset, order=8,
+               # 0.03-0.06 px: a third to the whole of the paper's per-pixel temporal sigma_d at 2 m (0.049 px
+               # at 424 x 240), so that the self-test's 12 frames show it
+               param_ranges={"sigma_px": (0.03, 0.06)},
+               valid={"sigma_px": (1e-9, 2.0)}),
 )
