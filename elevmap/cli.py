@@ -224,7 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--direct", action="store_true",
                    help="also measure the effects directly on the captures and the final model's simulation, "
                         "and put each fitted parameter next to its measurement")
-    p.add_argument("--jobs", type=int, default=1, help="processes for --selftest (default: 1)")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="processes: --selftest's cases, or the captures each model simulates (the report is the "
+                        "same for any number; default: 1)")
     p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single D435 frames of DIR (its regions "
                                                       "of known planes)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
@@ -661,7 +663,7 @@ def _cmd_gap(args) -> int:
         report = run_gap(args.real if len(args.real) > 1 else args.real[0], json_path=args.json, rrd_path=args.rrd,
                          heldout=args.heldout or "auto", effects=args.effects, seed=args.seed,
                          show_progress=not args.no_progress, overwrite=args.overwrite, depth_bands=args.depth_bands,
-                         direct=args.direct)
+                         direct=args.direct, n_jobs=args.jobs)
     print(format_summary(report))
     if args.json or args.rrd:
         print("wrote " + " and ".join(p for p in (args.json, args.rrd) if p)

@@ -99,7 +99,7 @@ def load_capture_sets(real_dirs):
 def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=None, seed: int = 0,
             show_progress: bool = True, model: SensorModel = D435, config: G.SelectionConfig | None = None,
             n_splits: int = 64, n_boot: int = 64, overwrite: bool = False, depth_bands=None,
-            direct: bool = False) -> dict:
+            direct: bool = False, n_jobs: int = 1) -> dict:
     """``elevmap gap REAL_CAPTURES [REAL_CAPTURES ...]``: diagnose capture sets, write the report (and recording).
 
     Parameters
@@ -131,6 +131,8 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
         Also measure the effects directly on the captures and on the final model's simulation of them
         (:mod:`noise_model.analysis.diagnosis.direct`), and put each fitted parameter that has a direct
         meaning next to its measurement (report key ``direct``).
+    n_jobs : int
+        Processes that simulate the captures of each model (the report is the same for any number).
 
     Returns
     -------
@@ -152,7 +154,7 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     with _model_bar(show_progress) as progress:
         report, res = diagnose(real, heldout=heldout, effects=effects, seed=seed, model=model, progress=progress,
                                real_label=", ".join(str(d) for d in dirs), config=config, n_splits=n_splits,
-                               n_boot=n_boot, distances=distances, angles=angles)
+                               n_boot=n_boot, distances=distances, angles=angles, jobs=n_jobs)
     report["mismatches"] = [m for cs in sets for m in cs.mismatches]
     if parents is not None:
         report["depth_bands"] = {"edges_m": list(edges), "parts": parents}

@@ -46,7 +46,7 @@ from ..planes import PlaneFit
 from .floor import MIN_FLOOR, Z_FLOOR
 from .selection import Diagnosis, SelectionConfig, model_key
 from .strata import Binning, GapCapture, make_gap_capture
-from .sums import STAT_UNITS
+from .sums import STAT_UNITS, FrameSampling, capture_sums
 
 __all__ = ["FORMAT", "MAX_WHERE", "SELFTEST_PAIR", "SELFTEST_STATIC_PAIR", "MEASURED_ONLY", "parse_effect_names",
            "auto_heldout", "split_captures", "capture_rng", "CaptureSimulator", "EffectFitter", "gap_capture_of",
@@ -171,25 +171,100 @@ def capture_rng(seed: int, capture_id: str) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(capture_id.encode("utf-8"))])
 
 
+def _simulate_depth(geometry: CaptureGeometry, n_frames: int, seed: int, model: SensorModel, objs) -> np.ndarray:
+    """One capture's simulation as metric depth (F, H, W) [m], NaN = no data, drawn from :func:`capture_rng`."""
+    units = simulate_capture(geometry, int(n_frames), capture_rng(seed, geometry.id), model, objs)
+    return CaptureData.from_units(geometry, units).depth_m
+
+
+def _simulate_sums(geometry: CaptureGeometry, cap: GapCapture, n_frames: int, seed: int, model: SensorModel,
+                   effects, sampling: FrameSampling) -> np.ndarray:
+    """A worker's task: one capture simulated with ``effects`` and reduced to its
+    :func:`noise_model.analysis.diagnosis.capture_sums` (only these sums travel back, not the frames)."""
+    objs = canonical_order([make_effect(n, **p) for n, p in effects])
+    return capture_sums(cap, _simulate_depth(geometry, n_frames, seed, model, objs), sampling)
+
+
+def _worker_init() -> None:
+    """A simulation worker uses one numba thread: the processes, not the threads, share the cores."""
+    import numba
+
+    numba.set_num_threads(1)
+
+
 class CaptureSimulator:
     """``simulate(ids, effects, n_frames) -> {id: depth_m}``: the reference simulation plus effects.
 
     Effects are (name, params) pairs, made with :func:`noise_model.sim.effects.make_effect` and applied in
     :func:`noise_model.sim.effects.canonical_order`; capture ``id`` draws from :func:`capture_rng`, the
     same generator in every model and in :func:`noise_model.analysis.effect_fits.fit_effect`'s base simulations.
+
+    :meth:`sums` simulates captures and reduces each to its statistics' sums, in ``jobs`` worker processes
+    when ``jobs`` > 1 (one capture per task). A capture's draws depend only on the seed and its id, never on
+    the process or the order, so the sums are the same for any ``jobs``. Workers are started on first use
+    (``spawn``: numba's thread pools are not safe to fork) and stopped by :meth:`close` (or ``with``).
+
+    Parameters
+    ----------
+    geometries : dict
+        Capture id -> CaptureGeometry.
+    model : SensorModel
+    seed : int
+    jobs : int
+        Worker processes of :meth:`sums` (1: in this process).
     """
 
-    def __init__(self, geometries: dict, model: SensorModel = D435, seed: int = 0):
-        self.geometries, self.model, self.seed = geometries, model, int(seed)
+    def __init__(self, geometries: dict, model: SensorModel = D435, seed: int = 0, jobs: int = 1):
+        if isinstance(jobs, bool) or not isinstance(jobs, (int, np.integer)) or int(jobs) < 1:
+            raise ValueError(f"jobs must be an integer >= 1, got {jobs!r}")
+        self.geometries, self.model, self.seed, self.jobs = geometries, model, int(seed), int(jobs)
+        self._pool = None
 
     def __call__(self, ids, effects, n_frames: int) -> dict:
         objs = canonical_order([make_effect(n, **p) for n, p in effects])
-        out = {}
-        for i in ids:
-            g = self.geometries[i]
-            units = simulate_capture(g, int(n_frames), capture_rng(self.seed, i), self.model, objs)
-            out[i] = CaptureData.from_units(g, units).depth_m
-        return out
+        return {i: _simulate_depth(self.geometries[i], n_frames, self.seed, self.model, objs) for i in ids}
+
+    def sums(self, ids, effects, n_frames: int, captures: dict, sampling: FrameSampling) -> dict:
+        """``{id: capture_sums(captures[id], simulation of id, sampling)}`` for the captures ``ids``.
+
+        Parameters
+        ----------
+        ids : sequence of str
+        effects : list of (str, dict)
+        n_frames : int
+        captures : dict
+            Capture id -> GapCapture.
+        sampling : FrameSampling
+            Rows of frame weights for ``n_frames`` frames.
+        """
+        ids = list(ids)
+        if self.jobs <= 1 or len(ids) < 2:
+            objs = canonical_order([make_effect(n, **p) for n, p in effects])
+            return {i: capture_sums(captures[i], _simulate_depth(self.geometries[i], n_frames, self.seed,
+                                                                 self.model, objs), sampling) for i in ids}
+        if self._pool is None:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor
+
+            self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=mp.get_context("spawn"),
+                                             initializer=_worker_init)
+        effects = [(n, dict(p)) for n, p in effects]
+        # the geometry travels without its render cache (the worker renders it again, to the same values)
+        futs = {i: self._pool.submit(_simulate_sums, dataclasses.replace(self.geometries[i]), captures[i],
+                                     int(n_frames), self.seed, self.model, effects, sampling) for i in ids}
+        return {i: f.result() for i, f in futs.items()}
+
+    def close(self) -> None:
+        """Stop the worker processes (if any were started)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 class EffectFitter:
@@ -293,7 +368,8 @@ def _where(entries: list, limit: int = MAX_WHERE, pad: int = 20) -> list:
 def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed: int = 0, model: SensorModel = D435,
              progress: Callable[[str], None] | None = None, rois: dict | None = None, distances: dict | None = None,
              kinds: dict | None = None, real_label: str = "", config: SelectionConfig | None = None,
-             n_splits: int = 64, n_boot: int = 64, binning: Binning | None = None, angles: dict | None = None):
+             n_splits: int = 64, n_boot: int = 64, binning: Binning | None = None, angles: dict | None = None,
+             jobs: int = 1):
     """Run the diagnosis on real captures held in memory.
 
     Parameters
@@ -326,6 +402,9 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
     angles : dict, optional
         Per capture id: the incidence angle [deg] for its angle bin (default: the target's on the optical
         axis; e.g. the median over a mask of a floor, whose incidence changes across the image).
+    jobs : int
+        Worker processes that simulate the models' captures (:meth:`CaptureSimulator.sums`); the report
+        is the same for any number (each capture's draws depend on the seed and its id only).
 
     Returns
     -------
@@ -373,11 +452,12 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
             skipped[n] = f"its fit needs {' or '.join(NEEDS[n])} captures among the fit captures"
     caps = [gap_capture_of(c, model, rois.get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id),
                            (angles or {}).get(c.id)) for c in real]
-    dg = Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
-                   CaptureSimulator(geoms, model, seed), EffectFitter(fit_real, model, seed, rois or None),
-                   binning=binning or Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
-                   config=config or SelectionConfig(), progress=progress, fitted_ids=fitted)
-    res = dg.run(candidates)
+    with CaptureSimulator(geoms, model, seed, jobs) as simulator:
+        dg = Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
+                       simulator, EffectFitter(fit_real, model, seed, rois or None),
+                       binning=binning or Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
+                       config=config or SelectionConfig(), progress=progress, fitted_ids=fitted)
+        res = dg.run(candidates)
     r = res.report
     report = {"format": FORMAT, "real": real_label, "split": {"fit": fit_ids, "heldout": held_ids},
               "baseline": r["baseline"], "where": _where(r["where"]), "effects": r["effects"],

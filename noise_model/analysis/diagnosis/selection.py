@@ -133,7 +133,9 @@ class Diagnosis:
     simulate : callable
         ``simulate(ids, effects, n_frames) -> {id: ndarray (n_frames, H, W) float [m]}``: the reference
         simulation plus ``effects`` (list of (name, params)), each capture seeded the same way in every
-        model (common random numbers).
+        model (common random numbers). When it also has a method ``simulate.sums(ids, effects, n_frames,
+        captures, sampling) -> {id: capture_sums}`` (:meth:`noise_model.analysis.diagnosis.CaptureSimulator.sums`,
+        e.g. in worker processes), that is used instead, and only the sums are kept.
     fit : callable or None
         ``fit(name, base_effects) -> params``: an effect's parameters fitted on the fit captures on top
         of ``base_effects``. None: baseline only.
@@ -195,11 +197,16 @@ class Diagnosis:
         store = self._sums.setdefault(key, {})
         missing = [i for i in ids if i not in store]
         if missing:
-            depth = self.simulate(missing, list(effects), self.n_sim_frames)
+            sums = getattr(self.simulate, "sums", None)
+            if callable(sums):
+                got = sums(missing, list(effects), self.n_sim_frames, self.captures, self.sim_sampling)
+            else:
+                depth = self.simulate(missing, list(effects), self.n_sim_frames)
+                got = {i: capture_sums(self.captures[i], depth[i], self.sim_sampling) for i in missing if i in depth}
             for i in missing:
-                if i not in depth:
+                if i not in got:
                     raise ValueError(f"simulate returned no depth for capture {i!r}")
-                store[i] = capture_sums(self.captures[i], depth[i], self.sim_sampling)
+                store[i] = got[i]
             self.n_simulated += len(missing)
             if self.progress is not None:
                 names = "+".join(n for n, _ in effects) or "reference"
