@@ -185,8 +185,10 @@ class Mapper:
         stamp = float(stamp)
         if not np.isfinite(stamp):
             raise ValueError(f"stamp must be finite, got {stamp!r}")
+        # the noise kernel counted the values out of the map's range as it wrote them: with none (and no
+        # variance_model, whose points are not counted) the map need not check them again
         stats = self.map._update_validated(pts.points_map, pts.height_var, pts.horizontal_cov, stamp,
-                                           T_map_cam[:3, 3].copy(), impl)
+                                           T_map_cam[:3, 3].copy(), impl, check=pts.n_outside != 0)
         t2 = time.perf_counter()
         stats.update(points=int(len(pts.pixel)), noise_ms=1e3 * (t1 - t0), fusion_ms=1e3 * (t2 - t1),
                      total_ms=1e3 * (t2 - t0))

@@ -102,3 +102,42 @@ def test_bad_calls_name_the_problem(rng):
         mapper.add_camera(Camera("c", K, W, H))
     with pytest.raises(ValueError, match="T_base_cam"):
         Camera("bad", K, W, H, T_base_cam=np.ones((4, 4)))
+
+
+def test_out_of_range_points_are_refused_whether_the_kernel_or_a_variance_model_made_them(rng):
+    """The map skips its own check of a frame's values only where the noise kernel counted none out of
+    range as it wrote them. A frame with such points (a camera 2 m short of the 1e9 m coordinate bound, a
+    pose covariance that makes every height variance exceed 1e4 m^2) or from a camera's variance_model (not
+    counted) is refused with the check's message and the map unchanged, as ElevationMap.update refuses
+    the same points; an ordinary frame gives the map bit for bit that update gives."""
+    far = camera_extrinsics((1e9 - 2.0, 0.0, 0.45), 30.0)        # the floor seen up to 6 m ahead: beyond 1e9 m
+    near = camera_extrinsics((0.0, 0.0, 0.45), 30.0)
+    big = np.diag([1e-4, 1e-4, 1e5, 1e-6, 1e-6, 1e-6])
+
+    def huge_variance(points_cam, T_map_cam, pose_cov):
+        return np.full(len(points_cam), 1e5), np.full((len(points_cam), 3), 1e-4)
+
+    for name, T, P, message in (("c", far, None, r"beyond the 1e\+09 m"), ("c", near, big, r"must be in m\^2"),
+                                ("v", near, None, r"must be in m\^2")):
+        mapper = Mapper(ElevationMap(4.0, 0.04, centre_xy=T[:2, 3]),
+                        [Camera("c", K, W, H), Camera("v", K, W, H, variance_model=huge_variance)])
+        d = floor_depth(T, rng)
+        before = mapper.map.data.copy()
+        with pytest.raises(ValueError, match=message):
+            mapper.integrate(name, d, T_map_cam=T, pose_cov=P)
+        np.testing.assert_array_equal(mapper.map.data, before)
+        if name == "c":
+            pts = nm.depth_to_map_points(d, K, T, P, depth_scale=0.001)
+            assert pts.n_outside > 0
+            with pytest.raises(ValueError, match=message):
+                mapper.map.update(pts.points_map, pts.height_var, horizontal_cov=pts.horizontal_cov)
+    T = camera_extrinsics((0.0, 0.0, 0.45), 30.0)
+    mapper = Mapper(ElevationMap(4.0, 0.04, visibility_cleanup=False), [Camera("c", K, W, H)])
+    emap = ElevationMap(4.0, 0.04, visibility_cleanup=False)
+    for f in range(2):
+        d = floor_depth(T, rng)
+        mapper.integrate("c", d, T_map_cam=T, stamp=f)
+        pts = mapper.last_points
+        assert pts.n_outside == 0
+        emap.update(pts.points_map, pts.height_var, stamp=f, horizontal_cov=pts.horizontal_cov)
+    np.testing.assert_array_equal(mapper.map.data, emap.data)

@@ -199,14 +199,15 @@ class ElevationMap:
         # (numba: in its first pass, before it changes anything; numpy: check_point_values first)
         return self._update_validated(p, var, hcov, stamp, origin, impl)
 
-    def _update_validated(self, p, var, hcov, stamp: float, origin, impl: str = "numba") -> dict:
-        """:meth:`update` on inputs whose shapes and dtypes are checked (the fusion checks their values)."""
+    def _update_validated(self, p, var, hcov, stamp: float, origin, impl: str = "numba", check: bool = True) -> dict:
+        """:meth:`update` on inputs whose shapes and dtypes are checked (the fusion checks their values unless
+        ``check`` is False: points whose producer counted none out of range, see :func:`fusion.fuse_frame`)."""
         clean = origin is not None and self.visibility_cleanup
         if impl == "numba":
             # with the clean-up to come, the fusion's pass keeps each cell's lowest ray end for it
             touched, box = fusion.fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params,
                                              self._ws, self.nthreads,
-                                             visibility.ENDPOINT_MARGIN_SIGMAS if clean else None)
+                                             visibility.ENDPOINT_MARGIN_SIGMAS if clean else None, check)
         else:
             touched, box = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp,
                                                        self.fusion_params)

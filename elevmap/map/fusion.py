@@ -687,7 +687,7 @@ def _cells(geom_n, gx0, gy0, res, x, y):
 
 
 def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params: FusionParams,
-               workspace: FusionWorkspace, nthreads=None, low_margin=None) -> tuple[int, tuple | None]:
+               workspace: FusionWorkspace, nthreads=None, low_margin=None, check=True) -> tuple[int, tuple | None]:
     """Fuse one frame into ``data`` (len(LAYERS), n, n) in place (numba).
 
     Parameters
@@ -709,6 +709,10 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
     low_margin : float, optional
         Also keep each cell's lowest ray end, z + low_margin sigma, in the workspace for the visibility
         clean-up (:func:`elevmap.map.visibility.visibility_cleanup_fused`).
+    check : bool
+        Check each point's values (default). False only for points whose producer has counted, as it wrote
+        them, that none is out of range (:attr:`noise_model.MapPoints.n_outside` == 0): the check is the
+        largest single part of the pass, and an unchecked bad value would reach the map.
 
     Returns
     -------
@@ -727,7 +731,8 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
     has_h = horizontal_cov is not None
     pa = params.array(geometry.resolution_m)
     with threads(n):
-        box = accumulate(data, geometry, points_map, height_var, horizontal_cov, pa, workspace, low_margin=low_margin)
+        box = accumulate(data, geometry, points_map, height_var, horizontal_cov, pa, workspace, check=check,
+                         low_margin=low_margin)
         if box is None:
             return 0, None
         sx, sy = geometry.start_index
@@ -742,7 +747,8 @@ def accumulate(data, geometry, points_map, height_var, horizontal_cov, packed_pa
     sum them into the workspace's partial grids for a new frame (and the lowest ray ends with
     ``low_margin``, see :func:`fuse_frame`). ``data`` is not changed. Returns the touched cells' first and
     last map row and column (i0, i1, j0, j1), or None; a ValueError naming the problem when a point fails
-    the check (``check=False``, for timing the check apart, skips it)."""
+    the check (``check=False`` skips it: for points counted in range by their producer, see
+    :func:`fuse_frame`, and for timing the check apart)."""
     has_h = horizontal_cov is not None
     h = horizontal_cov if has_h else np.zeros((1, 3))
     workspace.frame += 1
