@@ -227,6 +227,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=1,
                    help="processes: --selftest's cases, or the captures each model simulates (the report is the "
                         "same for any number; default: 1)")
+    p.add_argument("--min-shrink", type=float, default=None, metavar="FRACTION",
+                   help="materiality: an effect must shrink the held-out gap left before its round by at least this "
+                        "fraction, in [0, 1) (default: 0.05)")
+    p.add_argument("--max-effects", type=int, default=None, metavar="N",
+                   help="select at most N effects (default: 8)")
+    p.add_argument("--no-backfit", action="store_true",
+                   help="do not refit the effects selected before each newly accepted one")
     p.add_argument("--realdata", metavar="DIR", help="instead: the genuine single D435 frames of DIR (its regions "
                                                       "of known planes)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json/--rrd file")
@@ -644,6 +651,26 @@ def _cmd_gap(args) -> int:
 
     if args.jobs < 1:
         raise ValueError(f"--jobs must be >= 1, got {args.jobs}")
+    config = None
+    if args.min_shrink is not None or args.max_effects is not None or args.no_backfit:
+        import dataclasses
+
+        from noise_model.analysis.diagnosis import SelectionConfig
+
+        if args.selftest or args.realdata:
+            raise ValueError("--min-shrink, --max-effects and --no-backfit apply to REAL_CAPTURES (the self-test and "
+                             "--realdata keep their settings)")
+        config = SelectionConfig()
+        if args.min_shrink is not None:
+            if not (0.0 <= args.min_shrink < 1.0):
+                raise ValueError(f"--min-shrink must be in [0, 1), got {args.min_shrink}")
+            config = dataclasses.replace(config, min_shrink=float(args.min_shrink))
+        if args.max_effects is not None:
+            if args.max_effects < 1:
+                raise ValueError(f"--max-effects must be >= 1, got {args.max_effects}")
+            config = dataclasses.replace(config, max_effects=int(args.max_effects))
+        if args.no_backfit:
+            config = dataclasses.replace(config, backfit=False)
     if args.selftest:
         if args.real or args.realdata or args.rrd:
             raise ValueError("--selftest takes no REAL_CAPTURES, --realdata or --rrd")
@@ -663,7 +690,7 @@ def _cmd_gap(args) -> int:
         report = run_gap(args.real if len(args.real) > 1 else args.real[0], json_path=args.json, rrd_path=args.rrd,
                          heldout=args.heldout or "auto", effects=args.effects, seed=args.seed,
                          show_progress=not args.no_progress, overwrite=args.overwrite, depth_bands=args.depth_bands,
-                         direct=args.direct, n_jobs=args.jobs)
+                         direct=args.direct, n_jobs=args.jobs, config=config)
     print(format_summary(report))
     if args.json or args.rrd:
         print("wrote " + " and ".join(p for p in (args.json, args.rrd) if p)

@@ -285,7 +285,7 @@ def test_an_effect_fitted_before_another_is_fitted_again_on_top_of_it():
 # ---------------------------------------------------------------------------------------------
 # orchestration: capture set on disk -> report -> effects again
 # ---------------------------------------------------------------------------------------------
-def _write_small_set(folder, effect=None):
+def _write_small_set(folder, effect=None, more=()):
     from elevmap.sources.captures import write_capture_set
 
     cam = {"width": 106, "height": 60, "fx": 53.0, "fy": 53.0, "ppx": 52.5, "ppy": 29.5, "depth_scale": 0.001,
@@ -295,9 +295,28 @@ def _write_small_set(folder, effect=None):
         cid = f"wall_z{d:.2f}_y{int(y):02d}"
         entry = {"id": cid, "target": {"kind": "wall", "distance_m": d, "yaw_deg": y, "pitch_deg": 0.0}}
         g = CaptureGeometry.from_capture_set_entry(cam, entry)
-        units = simulate_capture(g, 8, np.random.default_rng([77, i]), D435, [effect] if effect else [])
+        units = simulate_capture(g, 8, np.random.default_rng([77, i]), D435, ([effect] if effect else []) + list(more))
         entries.append((entry, units))
     return write_capture_set(folder, cam, entries)
+
+
+def test_cli_selection_settings(tmp_path, capsys):
+    from elevmap.cli import main
+
+    real_dir = tmp_path / "real"
+    _write_small_set(real_dir, E.make_effect("invalid_band", margin_px=3.0), [E.make_effect("dropout", p_1m=0.2)])
+    jp = tmp_path / "gap.json"
+    assert main(["gap", str(real_dir), "--effects", "invalid_band,dropout", "--max-effects", "1", "--no-backfit",
+                 "--min-shrink", "0.2", "--json", str(jp), "--no-progress"]) == 0
+    rep = json.loads(jp.read_text())
+    assert len(rep["effects"]) == 1 and "maximum of 1 effects" in rep["stop_reason"]
+    capsys.readouterr()
+    for bad, msg in ((["--min-shrink", "1.5"], "--min-shrink must be in"), (["--max-effects", "0"], "--max-effects"),
+                     (["--min-shrink", "nan"], "--min-shrink must be in")):
+        assert main(["gap", str(real_dir), "--effects", "invalid_band"] + bad) == 2
+        assert msg in capsys.readouterr().err
+    assert main(["gap", "--selftest", "--no-backfit"]) == 2
+    assert "apply to REAL_CAPTURES" in capsys.readouterr().err
 
 
 def test_report_round_trip_and_overwrite_protection(tmp_path):
