@@ -17,6 +17,8 @@ import noise_model as nm
 from noise_model.checks import check_intrinsics, check_positive_scalar, check_transform
 from noise_model.d435 import SensorModel
 from noise_model.kernels import MAX_DEPTH_M, MIN_DEPTH_M
+from noise_model.valid_margin import (DEFAULT_VALID_MARGIN_PX, MAX_VALID_MARGIN_PX, drop_valid_margin,
+                                     drop_valid_margin_reference)
 
 from .map.elevation_map import ElevationMap
 
@@ -50,6 +52,11 @@ class Camera:
         Place each point's x, y where its ray meets the local plane (in a window of two surfaces: the
         nearer of that and the surface median), as :func:`noise_model.depth_to_map_points` does by default;
         False: at the measured depth.
+    valid_margin_px : int
+        Pixels with data within this many columns of a no-data pixel or of the image's left or right
+        border are dropped before the noise model (:mod:`noise_model.valid_margin`): there the stereo
+        matcher's window was cut short and edge fattening puts near-surface points beyond hidden step
+        edges. 0 keeps every pixel (a camera that is not a stereo matcher, or depth already filtered).
     """
 
     name: str
@@ -63,6 +70,7 @@ class Camera:
     max_depth_m: float = MAX_DEPTH_M
     variance_model: object = None
     bin_at_plane: bool = True
+    valid_margin_px: int = DEFAULT_VALID_MARGIN_PX
 
     def __post_init__(self):
         self.K = check_intrinsics(self.K, f"camera {self.name!r} K")
@@ -78,6 +86,11 @@ class Camera:
             raise ValueError(f"camera {self.name!r}: variance_model must be callable")
         if not isinstance(self.bin_at_plane, (bool, np.bool_)):
             raise ValueError(f"camera {self.name!r}: bin_at_plane must be True or False, got {self.bin_at_plane!r}")
+        m = self.valid_margin_px
+        if isinstance(m, bool) or not hasattr(m, "__index__") or not 0 <= int(m) <= MAX_VALID_MARGIN_PX:
+            raise ValueError(f"camera {self.name!r}: valid_margin_px must be an integer in "
+                             f"[0, {MAX_VALID_MARGIN_PX}] [px], got {m!r}")
+        self.valid_margin_px = int(m)
 
 
 class Mapper:
@@ -162,6 +175,9 @@ class Mapper:
         if impl not in ("numba", "numpy"):
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
         t0 = time.perf_counter()
+        if cam.valid_margin_px and d.dtype in (np.uint16, np.float32, np.float64):
+            d = (drop_valid_margin(d, cam.valid_margin_px, nthreads=self.nthreads) if impl == "numba"
+                 else drop_valid_margin_reference(d, cam.valid_margin_px))
         kwargs = dict(depth_scale=scale, model=cam.model, min_depth_m=cam.min_depth_m, max_depth_m=cam.max_depth_m,
                       bin_at_plane=cam.bin_at_plane)
         if impl == "numba":

@@ -6,6 +6,7 @@ import hashlib
 from dataclasses import fields, replace
 
 from noise_model.sim.effects import EFFECTS, Effect, make_effect
+from noise_model.valid_margin import DEFAULT_VALID_MARGIN_PX
 
 from ..map.fusion import FusionParams
 from ..pipeline import MappingConfig
@@ -19,7 +20,7 @@ REALITIES = ("reference", "stereo")
 #: The map settings ``--set`` may change besides the fields of :class:`elevmap.FusionParams`.
 MAP_SETTINGS = ("visibility_cleanup",)
 #: The camera settings ``--set`` may change (:class:`elevmap.Camera`).
-CAMERA_SETTINGS = ("bin_at_plane",)
+CAMERA_SETTINGS = ("bin_at_plane", "valid_margin_px")
 
 
 def _number(text: str, where: str):
@@ -173,7 +174,7 @@ def parse_reality(reality, sim_effects=None) -> dict:
 
 def parse_settings(spec) -> dict:
     """Map settings from ``--set KEY=VALUE[,KEY=VALUE]``: fields of :class:`elevmap.FusionParams`,
-    ``visibility_cleanup`` and the camera's ``bin_at_plane``. A value is read as the field's default is
+    ``visibility_cleanup`` and the camera's ``bin_at_plane`` and ``valid_margin_px``. A value is read as the field's default is
     typed: ``none`` (a field that may be None), ``true``/``false``, an integer or a number;
     ``neighbour_estimator`` takes a name.
 
@@ -201,6 +202,7 @@ def parse_settings(spec) -> dict:
     defaults = {f.name: f.default for f in fields(FusionParams)}
     defaults["visibility_cleanup"] = MappingConfig.visibility_cleanup
     defaults["bin_at_plane"] = True
+    defaults["valid_margin_px"] = DEFAULT_VALID_MARGIN_PX
     out = {}
     for k, v in items:
         if k not in defaults:

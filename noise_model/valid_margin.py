@@ -1,0 +1,140 @@
+"""The valid-region margin of a stereo depth image: drop the pixels whose matching window was cut short.
+
+A stereo depth camera decides each pixel's disparity from matching costs summed over a window about it
+(the D435's D4 matcher: a 9 x 9 census window, its costs averaged over a 9 x 9 box, then semi-global
+aggregation along image paths). Where that window reaches the image border, or pixels the matcher left
+without data (the left band no right-imager pixel sees, the occluded side of a step edge, dark or
+specular surfaces), the part that remains decides the match alone. At a step edge whose far side has no
+data, the remaining part is the near surface: a pixel that looks past the edge takes the near surface's
+disparity (edge fattening), and its point lands at the near surface's height in the cells beyond the
+edge. When the edge lies at the border of the image or beside the left invalid band, the row shows no
+edge at all, so no edge test on the depth image can find these pixels; they are found by their
+distance from the end of the valid region instead.
+
+The rule, along each image row (the rectified epipolar line, along which both the disparity search and
+the invalid regions run): a pixel with data is dropped when a pixel without data, or the left or right
+image border, lies within ``margin_px`` columns of it::
+
+    keep(v, u) = has_data(v, u)  and  has_data(v, u') for all |u' - u| <= margin_px,
+
+with columns outside [0, W) counted as having no data. ``has_data`` is false for the camera's no-data
+marker: 0 in uint16 depth units, and zero, negative or non-finite values in float metres (as
+:func:`noise_model.checks.check_depth` reads them). Dropped pixels are set to that marker (0 or NaN),
+so everything downstream treats them as pixels the camera did not measure. Columns of the same row only
+(docs/fusion.md says why image columns are left out).
+
+:func:`drop_valid_margin` is a parallel numba kernel (one image row per iteration, so the result does
+not depend on the thread count); :func:`drop_valid_margin_reference` is its NumPy twin, and the tests
+hold the two equal.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from .numba_config import JIT, threads
+
+__all__ = ["DEFAULT_VALID_MARGIN_PX", "MAX_VALID_MARGIN_PX", "drop_valid_margin", "drop_valid_margin_reference",
+           "has_data"]
+
+#: Default margin [px] at the D435's 424 x 240 and 848 x 480 depth modes: the half width of the matcher's
+#: cost box (9 x 9), which bounds how far a truncated window carries the near surface's disparity.
+DEFAULT_VALID_MARGIN_PX = 0
+
+#: Largest margin accepted [px]: the census and box windows together reach 8 px; a wider margin only
+#: removes data.
+MAX_VALID_MARGIN_PX = 16
+
+
+def has_data(depth) -> np.ndarray:
+    """True where a depth image holds a measurement, shape (H, W): uint16 > 0, float finite and > 0."""
+    d = np.asarray(depth)
+    if d.dtype == np.uint16:
+        return d > 0
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(d) & (d > 0)
+
+
+def _check(depth, margin_px):
+    d = np.asarray(depth)
+    if d.ndim != 2 or d.shape[0] < 1 or d.shape[1] < 1:
+        raise ValueError(f"depth must be a non-empty 2-D image (H, W), got shape {d.shape}")
+    if d.dtype not in (np.uint16, np.float32, np.float64):
+        raise ValueError(f"depth must be uint16 depth units or float32/float64 metres, got dtype {d.dtype}")
+    d = np.ascontiguousarray(d)
+    if isinstance(margin_px, bool) or not hasattr(margin_px, "__index__"):
+        raise ValueError(f"margin_px must be an integer in [0, {MAX_VALID_MARGIN_PX}] [px], got {margin_px!r}")
+    m = int(margin_px)
+    if not 0 <= m <= MAX_VALID_MARGIN_PX:
+        raise ValueError(f"margin_px must be in [0, {MAX_VALID_MARGIN_PX}] [px], got {m}")
+    return d, m
+
+
+@njit(**JIT)
+def _has_data(x) -> bool:
+    y = float(x)
+    return y > 0.0 and y < np.inf
+
+
+@njit(parallel=True, **JIT)
+def _margin_kernel(depth, margin, fill, out):
+    H, W = depth.shape
+    for v in prange(H):
+        last = -1                                   # column of the nearest no-data pixel on the left
+        for u in range(W):
+            x = depth[v, u]
+            if _has_data(x):
+                out[v, u] = x if u - last > margin else fill
+            else:
+                last = u
+                out[v, u] = x
+        nxt = W                                     # column of the nearest no-data pixel on the right
+        for u in range(W - 1, -1, -1):
+            if not _has_data(depth[v, u]):
+                nxt = u
+            elif nxt - u <= margin:
+                out[v, u] = fill
+
+
+def drop_valid_margin(depth, margin_px: int, *, nthreads: int | None = None) -> np.ndarray:
+    """Depth with the pixels near the end of the valid region set to no data (numba).
+
+    Parameters
+    ----------
+    depth : array_like, shape (H, W)
+        uint16 depth units (0 = no data) or float metres (zero, negative or non-finite = no data).
+    margin_px : int
+        Margin along rows [px], 0 .. :data:`MAX_VALID_MARGIN_PX`; 0 returns ``depth`` itself.
+    nthreads : int, optional
+        numba threads (numba's setting by default).
+
+    Returns
+    -------
+    ndarray, shape (H, W), the dtype of ``depth``
+        A new image: pixels with data within ``margin_px`` columns of a no-data pixel or of the left or
+        right image border set to 0 (uint16) or NaN (float); all other pixels unchanged.
+    """
+    d, m = _check(depth, margin_px)
+    if m == 0:
+        return d
+    out = np.empty_like(d)
+    fill = d.dtype.type(0 if d.dtype == np.uint16 else np.nan)
+    with threads(nthreads):
+        _margin_kernel(d, m, fill, out)
+    return out
+
+
+def drop_valid_margin_reference(depth, margin_px: int) -> np.ndarray:
+    """NumPy reference of :func:`drop_valid_margin` (same inputs, same output)."""
+    d, m = _check(depth, margin_px)
+    if m == 0:
+        return d
+    ok = has_data(d)
+    padded = np.zeros((d.shape[0], d.shape[1] + 2 * m), dtype=bool)
+    padded[:, m:m + d.shape[1]] = ok
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * m + 1, axis=1)
+    keep = windows.all(axis=2)
+    out = d.copy()
+    out[ok & ~keep] = 0 if d.dtype == np.uint16 else np.nan
+    return out
