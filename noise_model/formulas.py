@@ -63,7 +63,7 @@ import math
 
 import numpy as np
 
-__all__ = ["angle_gain", "sigma_z_from_gain", "expected_sigma_z_sq", "disparity_angle_gain", "disparity_sigma_z_from_gain",
+__all__ = ["angle_gain", "sigma_z_from_gain", "sigma_z_from_gain_and_root", "expected_sigma_z_sq", "disparity_angle_gain", "disparity_sigma_z_from_gain",
            "disparity_expected_sigma_z_sq", "reduced_chi2_quantile", "dersimonian_laird_tau2"]
 
 _HALF_PI = 0.5 * math.pi
@@ -110,6 +110,30 @@ def sigma_z_from_gain(z, gain, c0, c1, c2):
         sigma_z [m], the broadcast shape of ``z`` and ``gain``.
     """
     return c0 + c1 * z + c2 * z * z + gain * z * np.sqrt(z)
+
+
+def sigma_z_from_gain_and_root(z, root_z, gain, c0, c1, c2):
+    """:func:`sigma_z_from_gain` with the square root of the depth given: c0 + c1 z + c2 z^2 + g z root_z [m].
+
+    Where many pairs of depths are compared at the nearer one, min(z1, z2), each pixel's square root can be
+    taken once: sqrt(min(z1, z2)) = min(sqrt(z1), sqrt(z2)) exactly, because the correctly rounded square
+    root is monotone.
+
+    Parameters
+    ----------
+    z : float or ndarray
+        Depth [m], > 0.
+    root_z : float or ndarray
+        sqrt(z) [m^1/2].
+    gain, c0, c1, c2
+        As in :func:`sigma_z_from_gain`.
+
+    Returns
+    -------
+    float or ndarray
+        sigma_z [m].
+    """
+    return c0 + c1 * z + c2 * z * z + gain * z * root_z
 
 
 def expected_sigma_z_sq(z, mean_gain, mean_gain_sq, c0, c1, c2):

@@ -21,7 +21,7 @@ from numba import njit
 
 from ..formulas import (
     angle_gain, disparity_angle_gain, disparity_expected_sigma_z_sq, disparity_sigma_z_from_gain, expected_sigma_z_sq,
-    reduced_chi2_quantile, sigma_z_from_gain,
+    reduced_chi2_quantile, sigma_z_from_gain, sigma_z_from_gain_and_root,
 )
 from ..geometry import centred_moments
 from ..numba_config import JIT
@@ -41,6 +41,7 @@ centred = njit(**JIT)(centred_moments)
 #: The formulas of noise_model.formulas, compiled: sigma_z from the angle gain, the gain, E[sigma_z^2],
 #: the Wilson-Hilferty quantile per degree of freedom.
 _sigma_z = njit(**JIT)(sigma_z_from_gain)
+_sigma_z_root = njit(**JIT)(sigma_z_from_gain_and_root)
 _angle_gain = njit(**JIT)(angle_gain)
 _expected_sigma_z_sq = njit(**JIT)(expected_sigma_z_sq)
 #: ... and the disparity family's: sigma_z = z^2 (c + g), g = (s1 / (f B)) theta^2, E[sigma_z^2]
@@ -96,6 +97,20 @@ def agrees_select(zn, z, g, jump_rel, thr_sig, c0, c1, c2, disp):
     zq = min(zn, z)
     d = abs(zn - z)
     return (zn > 0.0) & ((d <= jump_rel * zq) | (d <= thr_sig * sigma_model(zq, g, c0, c1, c2, disp)))
+
+
+@njit(**JIT)
+def agrees_select_root(zn, rn, z, rz, g, jump_rel, thr_sig, c0, c1, c2, disp):
+    """:func:`agrees_select` with the square roots of the depths given (rn = sqrt(zn), rz = sqrt(z)): the
+    root of the nearer depth is the smaller root, exactly (:func:`noise_model.sigma_z_from_gain_and_root`),
+    so a pixel compared with many neighbours needs no square root per comparison."""
+    zq = min(zn, z)
+    rq = min(rn, rz)
+    d = abs(zn - z)
+    sd = _disparity_sigma_z(zq, g, c2)
+    sp = _sigma_z_root(zq, rq, g, c0, c1, c2)
+    s = sd if disp else sp
+    return (zn > 0.0) & ((d <= jump_rel * zq) | (d <= thr_sig * s))
 
 
 @njit(**JIT)

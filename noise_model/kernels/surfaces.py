@@ -23,8 +23,8 @@ from numba import njit, prange
 
 from ..numba_config import JIT
 from .compiled import (
-    EDGES, PLANES, ROW_MEDIANS, agrees, agrees_select, interleaved, lane_median, rank_median, sigma_model,
-    sort_lanes_any,
+    EDGES, PLANES, ROW_MEDIANS, agrees, agrees_select, agrees_select_root, interleaved, lane_median, rank_median,
+    sigma_model, sort_lanes_any,
 )
 from .planes import planes_block_row
 
@@ -179,24 +179,6 @@ def _any_mixed(mixed_px, by):
 
 
 @njit(**JIT)
-def _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net):
-    """Median of the agreeing candidates of m pixels at once: column j of buf (n, L) holds pixel j's n
-    candidate depths (NaN: none), zc[j] its depth and gc[j] its angle gain. Candidates that do not agree
-    (:func:`noise_model.kernels.compiled.agrees`) become +inf, each column is sorted, cnt[j] counts the
-    agreeing ones; returns nothing, :func:`noise_model.kernels.compiled.lane_median` reads the median.
-    The loops run over contiguous lanes and vectorise."""
-    for j in range(m):
-        cnt[j] = 0
-    for t in range(n):
-        for j in range(m):
-            zn = buf[t, j]
-            ok = agrees_select(zn, zc[j], gc[j], jump_rel, thr_sig, c0, c1, c2, disp)
-            buf[t, j] = zn if ok else np.inf
-            cnt[j] += 1 if ok else 0
-    sort_lanes_any(buf, m, net)
-
-
-@njit(**JIT)
 def _mixed_segment(mixed_px, by, bx, nbx, b, W):
     """(u0, u1, bx1): the pixel columns u0 .. u1 - 1 of the run of blocks of two surfaces in block row ``by``
     that starts at block column ``bx`` (mixed), and the block column after it."""
@@ -207,25 +189,37 @@ def _mixed_segment(mixed_px, by, bx, nbx, b, W):
 
 
 @njit(**JIT)
-def _row_copy(zr, u0, m0, m, half, by, gain_px, buf, zc, gc):
+def _row_agree(zr, sr, u0, m0, m, half, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, cnt, zc):
     """Pixels u0 .. u0 + m - 1 of a row (zr: its depths, NaN where invalid, padded by ``half`` NaN on each
-    side) into lanes m0 .. m0 + m - 1 of a batch: their depths, gains and 2 half + 1 row neighbours.
-    Contiguous pixels, unsigned offsets: the copies vectorise."""
+    side; sr: their square roots) into lanes m0 .. m0 + m - 1 of a batch: their depths into zc, and their
+    2 half + 1 row neighbours into the lanes' columns of buf (n, L), those that do not agree with the pixel
+    (:func:`noise_model.kernels.compiled.agrees_select_root`) as +inf, with cnt counting the agreeing ones;
+    :func:`noise_model.kernels.compiled.sort_lanes_any` then sorts the batch. The neighbours are read
+    from the row and tested as they are copied (one store per value), over contiguous pixels with unsigned
+    offsets: the loops vectorise."""
     s = np.uint64(u0)
     d = np.uint64(m0)
+    h = np.uint64(half)
     for j in range(np.uint64(m)):
-        zc[d + j] = zr[np.uint64(half) + s + j]
-        gc[d + j] = gain_px[by, s + j]
+        zc[d + j] = zr[h + s + j]
+        cnt[d + j] = 0
     for t in range(np.uint64(2 * half + 1)):
         for j in range(np.uint64(m)):
-            buf[t, d + j] = zr[s + j + t]
+            zn = zr[s + j + t]
+            ok = agrees_select_root(zn, sr[s + j + t], zr[h + s + j], sr[h + s + j], gain_px[by, s + j], jump_rel,
+                                    thr_sig, c0, c1, c2, disp)
+            buf[t, d + j] = zn if ok else np.inf
+            cnt[d + j] += 1 if ok else 0
 
 
 @njit(**JIT)
-def _surface_copy(depth, scale, zmin, zmax, u0, m0, m, rows_half, v, b, gain_px, mixed_px, rowmed, buf, zc, gc):
+def _surface_agree(depth, scale, zmin, zmax, u0, m0, m, rows_half, v, b, gain_px, mixed_px, rowmed, jump_rel,
+                   thr_sig, c0, c1, c2, disp, buf, cnt, zc):
     """Pixels u0 .. u0 + m - 1 of row v into lanes m0 .. m0 + m - 1 of a batch: their depths (NaN where
-    invalid), gains, and the row medians of rows v - rows_half .. v + rows_half of their columns where that
-    row's window is mixed (NaN elsewhere and beyond the image)."""
+    invalid) into zc, and the row medians of rows v - rows_half .. v + rows_half of their columns where that
+    row's window is mixed (NaN elsewhere and beyond the image) into the lanes' columns of buf (n, L), those
+    that do not agree with the pixel (:func:`noise_model.kernels.compiled.agrees_select`) as +inf, with
+    cnt counting the agreeing ones (tested as they are copied, as :func:`_row_agree`)."""
     H = rowmed.shape[0]
     by = v // b
     s = np.uint64(u0)
@@ -233,16 +227,19 @@ def _surface_copy(depth, scale, zmin, zmax, u0, m0, m, rows_half, v, b, gain_px,
     for j in range(np.uint64(m)):
         z = depth[v, s + j] * scale
         zc[d + j] = z if (z >= zmin) & (z <= zmax) else np.nan
-        gc[d + j] = gain_px[by, s + j]
+        cnt[d + j] = 0
     for t in range(2 * rows_half + 1):
         r = v - rows_half + t
         if r < 0 or r >= H:
             for j in range(np.uint64(m)):
-                buf[t, d + j] = np.nan
+                buf[t, d + j] = np.inf
             continue
         rb = r // b
         for j in range(np.uint64(m)):
-            buf[t, d + j] = rowmed[r, s + j] if mixed_px[rb, s + j] > 0.0 else np.nan
+            zn = rowmed[r, s + j] if mixed_px[rb, s + j] > 0.0 else np.nan
+            ok = agrees_select(zn, zc[d + j], gain_px[by, s + j], jump_rel, thr_sig, c0, c1, c2, disp)
+            buf[t, d + j] = zn if ok else np.inf
+            cnt[d + j] += 1 if ok else 0
 
 
 @njit(**JIT)
@@ -276,15 +273,19 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_si
     zr = np.empty(W + 2 * half)
     zr[:half] = np.nan
     zr[W + half:] = np.nan
+    sr = np.empty(W + 2 * half)                    # their square roots, each taken once
+    sr[:half] = np.nan
+    sr[W + half:] = np.nan
     cnt = np.empty(LANES, dtype=np.int64)
     zc = np.empty(LANES)
-    gc = np.empty(LANES)
     buf = np.empty((n, LANES))
     seg = np.empty((3, LANES), dtype=np.int64)     # per segment of a batch: first pixel, first lane, pixels
     for v in range(by * b, min(H, by * b + b)):
         for u in range(W):
             z = depth[v, u] * scale
-            zr[half + u] = z if (z >= zmin) & (z <= zmax) else np.nan
+            z = z if (z >= zmin) & (z <= zmax) else np.nan
+            zr[half + u] = z
+            sr[half + u] = np.sqrt(z)
         m = 0
         ns = 0
         bx = 0
@@ -295,7 +296,7 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_si
             u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
             while u < u1:
                 take = min(u1 - u, LANES - m)
-                _row_copy(zr, u, m, take, half, by, gain_px, buf, zc, gc)
+                _row_agree(zr, sr, u, m, take, half, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, cnt, zc)
                 seg[0, ns] = u
                 seg[1, ns] = m
                 seg[2, ns] = take
@@ -303,12 +304,12 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_si
                 m += take
                 u += take
                 if m == LANES:
-                    _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                    sort_lanes_any(buf, m, net)
                     _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
                     m = 0
                     ns = 0
         if m > 0:
-            _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+            sort_lanes_any(buf, m, net)
             _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, False, rowmed)
 
 
@@ -329,7 +330,6 @@ def surface_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, th
     if not _any_mixed(mixed_px, by):
         return
     zc = np.empty(LANES)
-    gc = np.empty(LANES)
     cnt = np.empty(LANES, dtype=np.int64)
     buf = np.empty((n, LANES))
     seg = np.empty((3, LANES), dtype=np.int64)
@@ -344,8 +344,8 @@ def surface_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, th
             u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
             while u < u1:
                 take = min(u1 - u, LANES - m)
-                _surface_copy(depth, scale, zmin, zmax, u, m, take, rows_half, v, b, gain_px, mixed_px, rowmed,
-                              buf, zc, gc)
+                _surface_agree(depth, scale, zmin, zmax, u, m, take, rows_half, v, b, gain_px, mixed_px, rowmed,
+                               jump_rel, thr_sig, c0, c1, c2, disp, buf, cnt, zc)
                 seg[0, ns] = u
                 seg[1, ns] = m
                 seg[2, ns] = take
@@ -353,10 +353,10 @@ def surface_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, th
                 m += take
                 u += take
                 if m == LANES:
-                    _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+                    sort_lanes_any(buf, m, net)
                     _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)
                     m = 0
                     ns = 0
         if m > 0:
-            _median_batch(buf, zc, gc, cnt, m, n, jump_rel, thr_sig, c0, c1, c2, disp, net)
+            sort_lanes_any(buf, m, net)
             _write_medians(buf, zc, cnt, seg[0], seg[1], seg[2], ns, v, True, surface_z)

@@ -9,8 +9,30 @@ import pytest
 from conftest import random_pose_cov, random_transform
 from noise_model import D435, Workspace, depth_to_map_points
 from noise_model.kernels import STAGES, depth_to_map_points_by_stage
-from noise_model.kernels.compiled import lane_median, rank_median, sort_lanes, sort_lanes_any, sorting_network
+from noise_model.formulas import sigma_z_from_gain, sigma_z_from_gain_and_root
+from noise_model.kernels.compiled import (
+    agrees_select, agrees_select_root, lane_median, rank_median, sort_lanes, sort_lanes_any, sorting_network,
+)
 from test_kernels import hostile_depth
+
+
+def test_the_root_of_the_nearer_depth_is_the_smaller_root_and_the_agreement_is_unchanged():
+    # the medians take each pixel's square root once: sqrt(min(a, b)) == min(sqrt(a), sqrt(b)) bit for bit,
+    # sigma_z from the root is sigma_z_from_gain's, and the agreement decides the same, on both families
+    rng = np.random.default_rng(3)
+    z = rng.uniform(0.1, 10.0, 5000)
+    zn = np.where(rng.random(z.size) < 0.5, z * rng.uniform(0.9, 1.1, z.size), rng.uniform(0.1, 10.0, z.size))
+    zn[::97] = np.nan
+    np.testing.assert_array_equal(np.sqrt(np.minimum(z, zn)), np.minimum(np.sqrt(z), np.sqrt(zn)))
+    g = rng.uniform(0.0, 0.02, z.size)
+    c0, c1, c2 = 0.0012, 0.0009, 0.0025
+    np.testing.assert_array_equal(sigma_z_from_gain_and_root(z, np.sqrt(z), g, c0, c1, c2),
+                                  sigma_z_from_gain(z, g, c0, c1, c2))
+    for disp in (False, True):
+        a = [agrees_select(x, y, w, 0.05, 4.0 * np.sqrt(2.0), c0, c1, c2, disp) for x, y, w in zip(zn, z, g)]
+        b = [agrees_select_root(x, np.sqrt(x), y, np.sqrt(y), w, 0.05, 4.0 * np.sqrt(2.0), c0, c1, c2, disp)
+             for x, y, w in zip(zn, z, g)]
+        assert a == b and 0.05 < np.mean(a) < 0.95
 
 
 @pytest.mark.parametrize("n", range(1, 14))
