@@ -465,6 +465,18 @@ def test_settings_switch_fusion_rules_off_for_every_mapper():
         run_compare("stairs", 1, mappers="paper", show_progress=False, settings="neighbour_radius=-1")
 
 
+def test_valid_margin_setting_reaches_every_camera():
+    s = parse_settings("valid_margin_px=8")
+    assert s == {"valid_margin_px": 8} and isinstance(s["valid_margin_px"], int)
+    a = run_compare("stairs", 1, mappers="paper", show_progress=False, settings="valid_margin_px=0")
+    b = run_compare("stairs", 1, mappers="paper", show_progress=False, settings="valid_margin_px=8")
+    assert b["settings"] == {"valid_margin_px": 8} and b["frames_digest"] == a["frames_digest"]
+    # 16 of 424 columns and the left invalid band's rim dropped: fewer cells known
+    assert b["mappers"]["paper"]["known_cells"] < a["mappers"]["paper"]["known_cells"]
+    with pytest.raises(ValueError, match="valid_margin_px"):
+        run_compare("stairs", 1, mappers="paper", show_progress=False, settings="valid_margin_px=17")
+
+
 def test_edge_profile_by_hand():
     from elevmap.commands.compare import edge_profile
 
