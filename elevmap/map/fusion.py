@@ -80,7 +80,7 @@ from numba import njit, prange
 from noise_model.formulas import dersimonian_laird_tau2, reduced_chi2_quantile
 from noise_model.numba_config import JIT, resolve_threads, threads
 
-from .neighbours import ESTIMATORS
+from .neighbours import ESTIMATORS, interleaved
 from .settings import MAX_COORDINATE_M, MAX_POINT_VARIANCE, MIN_HEIGHT_VARIANCE, check_bool, check_int, check_real
 from .settings import check_point_values
 from .layers import (
@@ -619,15 +619,16 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
 
 
 @njit(parallel=True, **JIT)
-def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, i0, i1, j0, j1):
+def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, i0, i1, j0, j1, T):
     """Pass 2, per map row of the touched rows i0..i1 and columns j0..j1 (buffer start (sx, sy)): merge
-    each cell's partial grids in their fixed order and write the cell (:func:`_merge_cell`). Returns the
-    cells touched."""
+    each cell's partial grids in their fixed order and write the cell (:func:`_merge_cell`); rows shared
+    among the T threads interleaved (:func:`elevmap.map.neighbours.interleaved`). Returns the cells touched."""
     n = data.shape[1]
     P = acc.shape[0]
     inf = np.inf
     touched = 0
-    for i in prange(i0, i1 + 1):
+    for qi in prange(i1 - i0 + 1):
+        i = i0 + interleaved(qi, i1 - i0 + 1, T)
         bi = i + sx
         if bi >= n:
             bi -= n
@@ -737,7 +738,7 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
             return 0, None
         sx, sy = geometry.start_index
         touched = _merge_kernel(data, int(sx), int(sy), has_h, float(stamp), pa, workspace.acc, workspace.stamp,
-                                workspace.frame, *box)
+                                workspace.frame, *box, n)
     return int(touched), box
 
 

@@ -206,3 +206,14 @@ def test_numba_equals_reference_through_the_map(rng):
         np.testing.assert_allclose(a.data, b.data, rtol=1e-9, atol=1e-11, equal_nan=True)
         a.move_to([0.33 + 0.1 * f, -0.71])
         b.move_to([0.33 + 0.1 * f, -0.71])
+
+
+def test_interleaved_rows_are_a_permutation_that_deals_every_thread_every_tth_row():
+    from elevmap.map.neighbours import interleaved
+
+    for n in (1, 2, 5, 95, 96):
+        for T in (1, 2, 3, 4):
+            order = [interleaved(q, n, T) for q in range(n)]
+            assert sorted(order) == list(range(n))
+            first = order[:(n + T - 1) // T]          # the first thread's contiguous range of q
+            assert first == list(range(0, n, T))
