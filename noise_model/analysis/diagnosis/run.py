@@ -200,7 +200,7 @@ class CaptureSimulator:
     same generator in every model and in :func:`noise_model.analysis.effect_fits.fit_effect`'s base simulations.
 
     :meth:`sums` simulates captures and reduces each to its statistics' sums, in ``jobs`` worker processes
-    when ``jobs`` > 1 (one capture per task). A capture's draws depend only on the seed and its id, never on
+    when ``jobs`` > 1 (one capture per task; :meth:`submit` starts them without waiting). A capture's draws depend only on the seed and its id, never on
     the process or the order, so the sums are the same for any ``jobs``. Workers are started on first use
     (``spawn``: numba's thread pools are not safe to fork) and stopped by :meth:`close` (or ``with``).
 
@@ -242,6 +242,13 @@ class CaptureSimulator:
             objs = canonical_order([make_effect(n, **p) for n, p in effects])
             return {i: capture_sums(captures[i], _simulate_depth(self.geometries[i], n_frames, self.seed,
                                                                  self.model, objs), sampling) for i in ids}
+        return {i: f.result() for i, f in self.submit(ids, effects, n_frames, captures, sampling).items()}
+
+    def submit(self, ids, effects, n_frames: int, captures: dict, sampling: FrameSampling) -> dict:
+        """:meth:`sums` without waiting: ``{id: future}`` whose ``result()`` is the capture's sums (worker
+        processes are started here; with ``jobs`` = 1 there are none, and this returns ``{}``)."""
+        if self.jobs <= 1:
+            return {}
         if self._pool is None:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
@@ -250,9 +257,8 @@ class CaptureSimulator:
                                              initializer=_worker_init)
         effects = [(n, dict(p)) for n, p in effects]
         # the geometry travels without its render cache (the worker renders it again, to the same values)
-        futs = {i: self._pool.submit(_simulate_sums, dataclasses.replace(self.geometries[i]), captures[i],
+        return {i: self._pool.submit(_simulate_sums, dataclasses.replace(self.geometries[i]), captures[i],
                                      int(n_frames), self.seed, self.model, effects, sampling) for i in ids}
-        return {i: f.result() for i, f in futs.items()}
 
     def close(self) -> None:
         """Stop the worker processes (if any were started)."""

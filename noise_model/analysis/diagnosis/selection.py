@@ -188,13 +188,37 @@ class Diagnosis:
         self.real_sums = {i: capture_sums(self.captures[i], d[:F], self.real_sampling) for i, d in frames.items()}
         self.fitted_bins = {binning.bins(self.captures[i]) for i in fitted_ids if i in self.captures}
         self._sums: dict = {}
+        self._pending: dict = {}
         self._floors: dict = {}
         self.n_simulated = 0
 
     # -- evaluation ---------------------------------------------------------------------------
+    def prefetch(self, effects, ids) -> None:
+        """Start simulating the model reference + ``effects`` on the captures ``ids`` (and its other
+        realisation, :func:`other_realisation`) without waiting, when ``simulate`` can
+        (``simulate.submit(ids, effects, n_frames, captures, sampling) -> {id: future of capture_sums}``,
+        :meth:`noise_model.analysis.diagnosis.CaptureSimulator.submit`, worker processes): the next
+        :meth:`evaluate` of the model collects the sums. The selection fits the next candidate meanwhile.
+        Does nothing otherwise."""
+        submit = getattr(self.simulate, "submit", None)
+        if not callable(submit):
+            return
+        for model in (effects, other_realisation(effects)):
+            if model is None:
+                continue
+            key = model_key(model)
+            store, pend = self._sums.get(key, {}), self._pending.setdefault(key, {})
+            missing = [i for i in ids if i not in store and i not in pend]
+            if missing:
+                pend.update(submit(missing, list(model), self.n_sim_frames, self.captures, self.sim_sampling))
+
     def _ensure(self, effects, ids):
         key = model_key(effects)
         store = self._sums.setdefault(key, {})
+        pend = self._pending.get(key, {})
+        done = [i for i in ids if i not in store and i in pend]
+        for i in done:
+            store[i] = pend.pop(i).result()
         missing = [i for i in ids if i not in store]
         if missing:
             sums = getattr(self.simulate, "sums", None)
@@ -207,6 +231,8 @@ class Diagnosis:
                 if i not in got:
                     raise ValueError(f"simulate returned no depth for capture {i!r}")
                 store[i] = got[i]
+        missing = done + missing
+        if missing:
             self.n_simulated += len(missing)
             if self.progress is not None:
                 names = "+".join(n for n, _ in effects) or "reference"
@@ -260,6 +286,10 @@ class Diagnosis:
         for k in list(self._sums):
             if k not in keys:
                 del self._sums[k]
+        for k in list(self._pending):
+            if k not in keys:
+                for f in self._pending.pop(k).values():
+                    f.cancel()
 
     def min_delta(self, current: GapResult) -> float:
         """The smallest material shrink of the held-out gap from ``current`` (the model before the round):
@@ -336,11 +366,21 @@ class Diagnosis:
             stop_reason = "no significant gap: the reference model is within the real-vs-real noise floor"
             remaining = []
         while remaining and len(selected) < cfg.max_effects:
-            tried = []
+            fitted = []                            # every candidate fitted first, its simulation started at once
             for name in remaining:
-                entry = {"name": name}
                 try:
                     params = dict(self.fit(name, list(selected)))
+                except ValueError as exc:          # no usable fit
+                    fitted.append((name, None, exc))
+                    continue
+                self.prefetch(selected + [(name, params)], self.fit_ids)
+                fitted.append((name, params, None))
+            tried = []
+            for name, params, fit_error in fitted:
+                entry = {"name": name}
+                try:
+                    if fit_error is not None:
+                        raise fit_error
                     model = selected + [(name, params)]
                     r = self.evaluate(model, self.fit_ids)
                 except ValueError as exc:          # no usable fit, or parameters the effect refuses
@@ -395,6 +435,9 @@ class Diagnosis:
         if stop_reason is None:
             stop_reason = f"reached the maximum of {cfg.max_effects} effects"
         # ablation: remove each selected effect again
+        for i in range(len(effects_out)):
+            self.prefetch(selected[:i] + selected[i + 1:], self.validation_ids)
+        self.prefetch(selected, self.all_ids)
         for i, e in enumerate(effects_out):
             without = selected[:i] + selected[i + 1:]
             r = self.evaluate(without, self.validation_ids)
