@@ -227,6 +227,8 @@ class FusionWorkspace:
         self.acc = np.zeros((PARTIALS, self.n * self.n, NACC))
         self.stamp = np.full((PARTIALS, self.n * self.n), -1, dtype=np.int64)
         self.frame = 0
+        #: per partial grid of the last frame: points that failed the check, first and last map row and column
+        self.boxes = np.empty((PARTIALS, 5), dtype=np.int64)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -619,10 +621,12 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
 
 
 @njit(parallel=True, **JIT)
-def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, i0, i1, j0, j1, T):
-    """Pass 2, per map row of the touched rows i0..i1 and columns j0..j1 (buffer start (sx, sy)): merge
-    each cell's partial grids in their fixed order and write the cell (:func:`_merge_cell`); rows shared
-    among the T threads interleaved (:func:`elevmap.map.neighbours.interleaved`). Returns the cells touched."""
+def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, pbox, i0, i1, T):
+    """Pass 2, per map row of the touched rows i0..i1 (buffer start (sx, sy)): merge each cell's partial grids
+    in their fixed order and write the cell (:func:`_merge_cell`). ``pbox`` holds each partial grid's first
+    and last map row and column reached (columns 1-4, as pass 1 writes them): a row visits only the partial
+    grids whose rows hold it, over the columns they reach. Rows are shared among the T threads interleaved
+    (:func:`elevmap.map.neighbours.interleaved`). Returns the cells touched."""
     n = data.shape[1]
     P = acc.shape[0]
     inf = np.inf
@@ -632,7 +636,17 @@ def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, i0, i
         bi = i + sx
         if bi >= n:
             bi -= n
-        for j in range(j0, j1 + 1):
+        ps = np.empty(P, dtype=np.int64)      # the partial grids that reached row i, in their order
+        npart = 0
+        ja = n
+        jb = -1
+        for p in range(P):
+            if pbox[p, 1] <= i and i <= pbox[p, 2]:
+                ps[npart] = p
+                npart += 1
+                ja = min(ja, pbox[p, 3])
+                jb = max(jb, pbox[p, 4])
+        for j in range(ja, jb + 1):
             bj = j + sy
             if bj >= n:
                 bj -= n
@@ -641,7 +655,8 @@ def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, i0, i
             zmin = zminr = inf
             zmax = zmaxr = -inf
             seen = False
-            for p in range(P):
+            for m in range(npart):
+                p = ps[m]
                 if acc_stamp[p, c] == fid:
                     seen = True
                     a = acc[p, c]
@@ -738,7 +753,7 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
             return 0, None
         sx, sy = geometry.start_index
         touched = _merge_kernel(data, int(sx), int(sy), has_h, float(stamp), pa, workspace.acc, workspace.stamp,
-                                workspace.frame, *box, n)
+                                workspace.frame, workspace.boxes, box[0], box[1], n)
     return int(touched), box
 
 
@@ -753,7 +768,7 @@ def accumulate(data, geometry, points_map, height_var, horizontal_cov, packed_pa
     has_h = horizontal_cov is not None
     h = horizontal_cov if has_h else np.zeros((1, 3))
     workspace.frame += 1
-    box = np.empty((PARTIALS, 5), dtype=np.int64)
+    box = workspace.boxes
     _accumulate_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, points_map[:, 0], points_map[:, 1],
                        points_map[:, 2], height_var, h[:, 0], h[:, 1], h[:, 2], has_h, packed_params, workspace.acc,
                        workspace.stamp, workspace.frame, bool(check), box, -1.0 if low_margin is None else float(low_margin))
