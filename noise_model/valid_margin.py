@@ -38,9 +38,9 @@ from .numba_config import JIT, threads
 __all__ = ["DEFAULT_VALID_MARGIN_PX", "MAX_VALID_MARGIN_PX", "drop_valid_margin", "drop_valid_margin_reference",
            "has_data"]
 
-#: Default margin [px] at the D435's 424 x 240 and 848 x 480 depth modes: the half width of the matcher's
-#: cost box (9 x 9), which bounds how far a truncated window carries the near surface's disparity.
-DEFAULT_VALID_MARGIN_PX = 0
+#: Default margin [px], the same at every D435 depth mode (the matcher's windows are fixed in pixels): the
+#: half width of the matcher's 9 x 9 cost box plus one column. docs/fusion.md gives the margins measured.
+DEFAULT_VALID_MARGIN_PX = 5
 
 #: Largest margin accepted [px]: the census and box windows together reach 8 px; a wider margin only
 #: removes data.
