@@ -197,7 +197,7 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
     P = np.zeros((6, 6)) if P is None else P
 
     def surfaces(parts):
-        return (parts, d, scale, zmin, zmax, params, jump_rel, thr_sig, b, M, WINDOW_RADIUS_BLOCKS,
+        return (parts, d, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, M, WINDOW_RADIUS_BLOCKS,
                 NORMAL_MIN_POINTS, DEGENERATE_REL, MIXED_WINDOW_Z, _GH_X, _GH_W, _GRID_X, _GRID_W, ROW_MEDIAN_HALF_PX,
                 sorting_network(2 * ROW_MEDIAN_HALF_PX + 1), gain, eg, eg2, alpha, beta, gamma, mixed, ws.rowcount,
                 ws.flags, ws.speckle_z, ws.row_median)

@@ -104,7 +104,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
     for ib in prange(nby):
         by = interleaved(ib, nby)
         if parts & SURFACE_MEDIANS:
-            surface_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, rows_half,
+            surface_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, rows_half,
                                       surface_net, gain_px, mixed_px, rowmed, surface_z)
         cu = np.empty(W, dtype=np.int64)
         cz = np.empty(W)

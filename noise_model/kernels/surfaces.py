@@ -69,7 +69,7 @@ def _speckle_median(depth, scale, zmin, zmax, v, u, z, g, jump_rel, thr_sig, c0,
 
 
 @njit(parallel=True, **JIT)
-def surfaces_stage(parts, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, M, radius, min_points,
+def surfaces_stage(parts, depth, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, M, radius, min_points,
                    degenerate_rel, mix_z, hx, hw, gx, gw, half, row_net, gain_px, eg_px, eg2_px, alpha_px, beta_px,
                    gamma_px, mixed_px, rowcount, flags, speckle_z, rowmed):
     """Stages 2, 3a and 3b per block row, in one parallel region: those of ``parts`` (PLANES, EDGES,
@@ -93,6 +93,9 @@ def surfaces_stage(parts, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b
     ----------
     parts : int
         Bits of PLANES, EDGES, ROW_MEDIANS.
+    family : None or True
+        The model's family as a type (None: the paper's, True: the disparity family), as in
+        :func:`noise_model.kernels.points.points_stage`: each compiles without the other's arithmetic.
     jump_rel, thr_sig : float
         The relative part of the depth-edge threshold and its noise part per sigma_z.
     gain_px : ndarray, shape (nby, W)
@@ -106,7 +109,7 @@ def surfaces_stage(parts, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b
     H, W = depth.shape
     nby = gain_px.shape[0]
     c0, c1, c2 = params[0], params[1], params[2]
-    disp = params[7] > 0.5
+    disp = family is not None
     grows_z2 = (c0 >= 0.0) & (c1 >= 0.0) & (c2 >= 0.0) & (params[3] >= 0.0)    # and the gain g >= 0
     for ib in prange(nby):
         by = interleaved(ib, nby)
@@ -165,8 +168,8 @@ def surfaces_stage(parts, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b
                     else:
                         flags[v, u] = flags[v, u] & ~SPECKLE
         if parts & ROW_MEDIANS:
-            row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, half, row_net, gain_px,
-                                  mixed_px, rowmed)
+            row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, half, row_net,
+                                  gain_px, mixed_px, rowmed)
 
 
 @njit(**JIT)
@@ -255,18 +258,19 @@ def _write_medians(buf, zc, cnt, seg_u0, seg_m0, seg_n, ns, v, fallback_own, out
 
 
 @njit(**JIT)
-def row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, half, net, gain_px, mixed_px,
-                          rowmed):
+def row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, half, net, gain_px,
+                          mixed_px, rowmed):
     """Stage 3b for block row ``by``: in windows of two surfaces, each valid pixel's row median
     (noise_model.row_medians) into ``rowmed`` (H, W) [m], NaN for invalid ones (no neighbour agrees with
     NaN); pixels outside mixed windows are neither computed nor written (the next stage reads rowmed only
-    where mixed_px says so), and block rows without any are skipped. Mixed windows come in whole blocks: the runs of contiguous mixed blocks of
-    a row are copied into batches of at most :data:`LANES` pixels. ``net``:
-    :func:`noise_model.kernels.compiled.sorting_network` (2 half + 1)."""
+    where mixed_px says so), and block rows without any are skipped. Mixed windows come in whole blocks:
+    the runs of contiguous mixed blocks of a row are copied into batches of at most :data:`LANES` pixels.
+    ``net``: :func:`noise_model.kernels.compiled.sorting_network` (2 half + 1); ``family`` as in
+    :func:`surfaces_stage`."""
     H, W = depth.shape
     nbx = (W + b - 1) // b
     c0, c1, c2 = params[0], params[1], params[2]
-    disp = params[7] > 0.5
+    disp = family is not None
     n = 2 * half + 1
     if not _any_mixed(mixed_px, by):
         return
@@ -314,18 +318,18 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_si
 
 
 @njit(**JIT)
-def surface_medians_block_row(by, depth, scale, zmin, zmax, params, jump_rel, thr_sig, b, rows_half, net, gain_px,
-                              mixed_px, rowmed, surface_z):
+def surface_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, rows_half, net,
+                              gain_px, mixed_px, rowmed, surface_z):
     """Stage 3c for block row ``by`` (run by :func:`noise_model.kernels.points.points_stage`): at each valid
     pixel of a window of two surfaces, the median of the agreeing row medians of
     2 rows_half + 1 rows (noise_model.surface_depths) into ``surface_z`` (H, W) [m], the pixel's own depth
     where none agrees; invalid pixels get NaN and are never read. In batches of runs of contiguous mixed
     blocks, as :func:`row_medians_block_row`. ``net``: :func:`noise_model.kernels.compiled.sorting_network`
-    (2 rows_half + 1)."""
+    (2 rows_half + 1); ``family`` as in :func:`surfaces_stage`."""
     H, W = depth.shape
     nbx = (W + b - 1) // b
     c0, c1, c2 = params[0], params[1], params[2]
-    disp = params[7] > 0.5
+    disp = family is not None
     n = 2 * rows_half + 1
     if not _any_mixed(mixed_px, by):
         return
