@@ -74,6 +74,7 @@ import warnings
 from dataclasses import InitVar, dataclass
 from statistics import NormalDist
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -477,7 +478,7 @@ def _count_bad(x, y, z, var, hx, hxy, hy, has_h, k0, k1):
 
 @njit(parallel=True, **JIT)
 def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, params, acc, acc_stamp, fid, check, box,
-                       low_margin):
+                       low_margin, T):
     """Pass 1, per partial grid over its fixed range of points: check the points' values (``check``; a
     block of CHECK_BLOCK points at a time, just before they are summed), gate each point against its
     cell's prior and sum it into the cell's partial grid. Writes only ``acc``, ``acc_stamp`` and ``box``
@@ -489,7 +490,9 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
     Consecutive points of a depth image mostly fall in the same cell: a run of points in one cell is
     summed in registers and added to the partial grid when the run ends (the order of the additions is
     fixed by the points' order, so the result does not depend on the thread count), and a point well
-    inside the previous point's cell skips the divisions of floor(x / res) (the same cell, exactly)."""
+    inside the previous point's cell skips the divisions of floor(x / res) (the same cell, exactly).
+    The partial grids are dealt to the T threads interleaved (:func:`elevmap.map.neighbours.interleaved`):
+    a depth image's far rows come first and cost more per point (shorter runs)."""
     n = data.shape[1]
     P = acc.shape[0]
     N = x.shape[0]
@@ -497,7 +500,8 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
     sx = gx0 % n
     sy = gy0 % n
     inf = np.inf
-    for p in prange(P):
+    for qp in prange(P):
+        p = interleaved(qp, P, T)
         a0 = b0 = n
         a1 = b1 = -1
         nbad = 0
@@ -771,7 +775,8 @@ def accumulate(data, geometry, points_map, height_var, horizontal_cov, packed_pa
     box = workspace.boxes
     _accumulate_kernel(data, geometry.gx0, geometry.gy0, geometry.resolution_m, points_map[:, 0], points_map[:, 1],
                        points_map[:, 2], height_var, h[:, 0], h[:, 1], h[:, 2], has_h, packed_params, workspace.acc,
-                       workspace.stamp, workspace.frame, bool(check), box, -1.0 if low_margin is None else float(low_margin))
+                       workspace.stamp, workspace.frame, bool(check), box, -1.0 if low_margin is None else float(low_margin),
+                       numba.get_num_threads())
     if box[:, 0].sum() > 0:
         check_point_values(points_map, height_var, horizontal_cov)
         raise ValueError("points_map, height_var or horizontal_cov hold values out of range")   # not reached
