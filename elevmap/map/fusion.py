@@ -777,12 +777,13 @@ def accumulate(data, geometry, points_map, height_var, horizontal_cov, packed_pa
                        points_map[:, 2], height_var, h[:, 0], h[:, 1], h[:, 2], has_h, packed_params, workspace.acc,
                        workspace.stamp, workspace.frame, bool(check), box, -1.0 if low_margin is None else float(low_margin),
                        numba.get_num_threads())
-    if box[:, 0].sum() > 0:
+    bad, i0, i1, j0, j1 = zip(*box.tolist())         # per partial grid (a few Python ints: cheaper than NumPy)
+    if sum(bad) > 0:
         check_point_values(points_map, height_var, horizontal_cov)
         raise ValueError("points_map, height_var or horizontal_cov hold values out of range")   # not reached
-    if box[:, 2].max() < 0:
+    if max(i1) < 0:
         return None
-    return int(box[:, 1].min()), int(box[:, 2].max()), int(box[:, 3].min()), int(box[:, 4].max())
+    return min(i0), max(i1), min(j0), max(j1)
 
 
 def touched_box(geometry, points_map) -> tuple | None:

@@ -443,14 +443,23 @@ def update_neighbour_spread(data, geometry, radius: int = 2, rows=None, cols=Non
                           estimator == "paule_mandel", n)
 
 
+@njit(**JIT)
 def _reference_height(data) -> float:
     """A height near the map's [m] (the mean of the known cells of every 8th row and column, else of all,
     0 for an empty map): heights enter the sums relative to it, so that w (h - ref)^2 stays small where
     the map lies far above its origin."""
-    for h in (data[ELEVATION, ::8, ::8], data[ELEVATION]):
-        known = ~np.isnan(h)
-        if known.any():
-            return float(np.mean(h[known]))
+    n = data.shape[1]
+    for step in (8, 1):
+        s = 0.0
+        k = 0
+        for i in range(0, n, step):
+            for j in range(0, n, step):
+                h = data[ELEVATION, i, j]
+                if not np.isnan(h):
+                    s += h
+                    k += 1
+        if k:
+            return s / k
     return 0.0
 
 
