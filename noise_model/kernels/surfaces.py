@@ -192,6 +192,13 @@ def _mixed_segment(mixed_px, by, bx, nbx, b, W):
 
 
 @njit(**JIT)
+def _roots(zr, sr, i0, i1):
+    """sr[i] = sqrt(zr[i]) for i0 <= i < i1."""
+    for i in range(np.uint64(i0), np.uint64(i1)):
+        sr[i] = np.sqrt(zr[i])
+
+
+@njit(**JIT)
 def _row_agree(zr, sr, u0, m0, m, half, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, cnt, zc):
     """Pixels u0 .. u0 + m - 1 of a row (zr: its depths, NaN where invalid, padded by ``half`` NaN on each
     side; sr: their square roots) into lanes m0 .. m0 + m - 1 of a batch: their depths into zc, and their
@@ -277,7 +284,7 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel
     zr = np.empty(W + 2 * half)
     zr[:half] = np.nan
     zr[W + half:] = np.nan
-    sr = np.empty(W + 2 * half)                    # their square roots, each taken once
+    sr = np.empty(W + 2 * half)                    # their square roots, each taken once, where read
     sr[:half] = np.nan
     sr[W + half:] = np.nan
     cnt = np.empty(LANES, dtype=np.int64)
@@ -289,7 +296,6 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel
             z = depth[v, u] * scale
             z = z if (z >= zmin) & (z <= zmax) else np.nan
             zr[half + u] = z
-            sr[half + u] = np.sqrt(z)
         m = 0
         ns = 0
         bx = 0
@@ -298,6 +304,7 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel
                 bx += 1
                 continue
             u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
+            _roots(zr, sr, half + max(0, u - half), half + min(W, u1 + half))     # the segment and its neighbours
             while u < u1:
                 take = min(u1 - u, LANES - m)
                 _row_agree(zr, sr, u, m, take, half, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, cnt, zc)
