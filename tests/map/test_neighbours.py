@@ -217,3 +217,28 @@ def test_interleaved_rows_are_a_permutation_that_deals_every_thread_every_tth_ro
             assert sorted(order) == list(range(n))
             first = order[:(n + T - 1) // T]          # the first thread's contiguous range of q
             assert first == list(range(0, n, T))
+
+
+@pytest.mark.parametrize("radius", [4, 10])
+def test_numba_equals_reference_on_rows_wider_than_a_block_of_solves(radius):
+    """Rows of more than PM_BLOCK cells solved side by side (several blocks per row, the last one short),
+    with and without a warm start, the window's edge in the middle of the wrapped buffer."""
+    from elevmap.map.neighbours import PM_BLOCK
+
+    rng = np.random.default_rng(5)
+    n = 2 * PM_BLOCK + 37
+    g = GridGeometry(n, 0.05, 61, -29)
+    d, _ = random_map(rng, n, frac_known=0.8)
+    for warm in (False, True):
+        if not warm:
+            d[NEIGHBOUR_SPREAD] = np.where(np.isnan(d[ELEVATION]), np.nan, 0.0)
+        results = []
+        for nthreads in (1, 2):
+            a = d.copy()
+            update_neighbour_spread(a, g, radius, (n - 9, n - 2), (0, n - 1), nthreads=nthreads)
+            results.append(a)
+        b = d.copy()
+        update_neighbour_spread_reference(b, g, radius, (n - 9, n - 2), (0, n - 1))
+        np.testing.assert_array_equal(results[0], results[1])
+        np.testing.assert_allclose(results[0], b, rtol=1e-9, atol=1e-15, equal_nan=True)
+        assert (results[0][NEIGHBOUR_SPREAD] > 0).sum() > 2 * n
