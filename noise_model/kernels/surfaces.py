@@ -192,10 +192,14 @@ def _mixed_segment(mixed_px, by, bx, nbx, b, W):
 
 
 @njit(**JIT)
-def _roots(zr, sr, i0, i1):
-    """sr[i] = sqrt(zr[i]) for i0 <= i < i1."""
-    for i in range(np.uint64(i0), np.uint64(i1)):
-        sr[i] = np.sqrt(zr[i])
+def _row_depths(depth, scale, zmin, zmax, v, half, u0, u1, zr, sr):
+    """Pixels u0 .. u1 - 1 of row v into zr[half + u] (their depths [m], NaN where invalid) and sr (their
+    square roots)."""
+    for u in range(np.uint64(u0), np.uint64(u1)):
+        z = depth[v, u] * scale
+        z = z if (z >= zmin) & (z <= zmax) else np.nan
+        zr[np.uint64(half) + u] = z
+        sr[np.uint64(half) + u] = np.sqrt(z)
 
 
 @njit(**JIT)
@@ -281,10 +285,10 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel
     n = 2 * half + 1
     if not _any_mixed(mixed_px, by):
         return
-    zr = np.empty(W + 2 * half)
-    zr[:half] = np.nan
+    zr = np.empty(W + 2 * half)                    # depths of the row where read: the mixed segments and
+    zr[:half] = np.nan                             # their neighbours
     zr[W + half:] = np.nan
-    sr = np.empty(W + 2 * half)                    # their square roots, each taken once, where read
+    sr = np.empty(W + 2 * half)                    # their square roots, each taken once
     sr[:half] = np.nan
     sr[W + half:] = np.nan
     cnt = np.empty(LANES, dtype=np.int64)
@@ -292,10 +296,6 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel
     buf = np.empty((n, LANES))
     seg = np.empty((3, LANES), dtype=np.int64)     # per segment of a batch: first pixel, first lane, pixels
     for v in range(by * b, min(H, by * b + b)):
-        for u in range(W):
-            z = depth[v, u] * scale
-            z = z if (z >= zmin) & (z <= zmax) else np.nan
-            zr[half + u] = z
         m = 0
         ns = 0
         bx = 0
@@ -304,7 +304,7 @@ def row_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel
                 bx += 1
                 continue
             u, u1, bx = _mixed_segment(mixed_px, by, bx, nbx, b, W)
-            _roots(zr, sr, half + max(0, u - half), half + min(W, u1 + half))     # the segment and its neighbours
+            _row_depths(depth, scale, zmin, zmax, v, half, max(0, u - half), min(W, u1 + half), zr, sr)
             while u < u1:
                 take = min(u1 - u, LANES - m)
                 _row_agree(zr, sr, u, m, take, half, by, gain_px, jump_rel, thr_sig, c0, c1, c2, disp, buf, cnt, zc)
