@@ -101,8 +101,8 @@ def fused_variance(data) -> np.ndarray:
 def interleaved(q, n, T):
     """The q-th of n rows (0 <= q < n) in the order 0, T, 2 T, ..., 1, T + 1, ..., T - 1, 2 T - 1, ...: a
     parallel loop over q hands each of its T threads a contiguous range of q, which then holds every T-th
-    row. Why: the work per row grows across the map (a camera's view widens with distance), and contiguous
-    blocks of rows left one of two threads with 1.2-1.5 times its share."""
+    row. Why: the work per row grows across the map (a camera's view widens with distance), so contiguous
+    blocks of rows leave the thread with the far rows most of the work (docs/fusion.md)."""
     k = np.int64(q)                            # a parallel loop's index may be unsigned
     n = np.int64(n)
     T = np.int64(T)
