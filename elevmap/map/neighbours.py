@@ -207,76 +207,66 @@ PM_BLOCK = 64
 
 
 @njit(**JIT)
-def _pm_weights(Hl, Pl, ii, b0, nb, r, t, wb, s1, sy):
-    """First pass of :func:`_paule_mandel_row` for the nb cells from column b0: the weights
-    w = 1 / (P + t) of every window offset into wb, their sums s1 and the sums of w y into sy. Each inner
-    loop reads and writes few arrays, through slices, so that the compiler vectorises it."""
+def _pm_sums(Hl, Pl, ii, b0, nb, r, t, cen, s):
+    """The sums of :func:`_paule_mandel_row` for the nb cells from column b0, heights taken relative to each
+    cell's centre cen (w = 1 / (P + t), y = h - cen): s[0] = sum w, s[1] = sum w y, s[2] = sum w y^2,
+    s[3] = sum w^2, s[4] = sum w^2 y, s[5] = sum w^2 y^2. Each inner loop reads and writes few arrays,
+    through slices, so that the compiler vectorises it."""
     L = 2 * r + 1
     tb = t[b0:b0 + nb]
+    cb = cen[b0:b0 + nb]
+    s0 = s[0]
+    s1 = s[1]
+    s2 = s[2]
+    s3 = s[3]
+    s4 = s[4]
+    s5 = s[5]
     for c in range(nb):
+        s0[c] = 0.0
         s1[c] = 0.0
-        sy[c] = 0.0
-    q = 0
+        s2[c] = 0.0
+        s3[c] = 0.0
+        s4[c] = 0.0
+        s5[c] = 0.0
     for a in range(L):
         prow = Pl[ii + a, b0:]
         hrow = Hl[ii + a, b0:]
         for b in range(L):
-            wq = wb[q]
             pr = prow[b:]
             hr = hrow[b:]
             for c in range(nb):
                 w = 1.0 / (pr[c] + tb[c])
-                wq[c] = w
-                s1[c] += w
-                sy[c] += w * hr[c]
-            q += 1
+                y = hr[c] - cb[c]
+                wy = w * y
+                ww = w * w
+                s0[c] += w
+                s1[c] += wy
+                s2[c] += wy * y
+                s3[c] += ww
+                s4[c] += ww * y
+                s5[c] += ww * y * y
 
 
 @njit(**JIT)
-def _pm_moments(Hl, ii, b0, nb, r, wb, s1, sy, mb, qb, db):
-    """Second pass of :func:`_paule_mandel_row`: the means m = sy / s1 into mb, then Q = sum w (y - m)^2
-    into qb and D = sum w^2 (y - m)^2 into db."""
-    L = 2 * r + 1
-    for c in range(nb):
-        mb[c] = sy[c] / s1[c]
-        qb[c] = 0.0
-        db[c] = 0.0
-    q = 0
-    for a in range(L):
-        hrow = Hl[ii + a, b0:]
-        for b in range(L):
-            wq = wb[q]
-            hr = hrow[b:]
-            for c in range(nb):
-                d = hr[c] - mb[c]
-                e = wq[c] * d * d
-                qb[c] += e
-                db[c] += wq[c] * e
-            q += 1
-
-
-@njit(**JIT)
-def _paule_mandel_row(Hl, Pl, ii, c0, c1, r, t, qq, dd, buf):
+def _paule_mandel_row(Hl, Pl, ii, c0, c1, r, t, cen, qq, dd, s):
     """The first evaluation of Q and D (:func:`_paule_mandel_step`) for the cells c0..c1-1 of one row at once,
     each at its own t[c]: the windows of neighbouring cells are neighbouring columns of the padded copies
     Hl, Pl (top-left row ii), so each window offset is one contiguous loop over the cells, which the compiler
-    vectorises (a cell that does not count has P = inf, so w = 0 and it adds exact zeros). Each cell's sums
-    run over its window in row order, one offset after the other, whatever the block. Results go to
-    qq[c], dd[c]; ``buf`` has (2 r + 1)^2 + 5 rows of PM_BLOCK (weights, then five per-cell sums)."""
-    L2 = (2 * r + 1) ** 2
-    wb = buf[:L2]
-    s1 = buf[L2]
-    sy = buf[L2 + 1]
-    mb = buf[L2 + 2]
-    qb = buf[L2 + 3]
-    db = buf[L2 + 4]
+    vectorises (a cell that does not count has P = inf, so w = 0 and it adds exact zeros). One pass: with
+    y = h - cen and the mean m = cen + sum w y / sum w,
+
+        Q = sum w y^2 - (sum w y)^2 / sum w,   D = sum w^2 y^2 - 2 (m - cen) sum w^2 y + (m - cen)^2 sum w^2,
+
+    which keep their precision because cen, the window's DerSimonian-Laird mean, lies near m (both are
+    weighted means of the same heights). Each cell's sums run over its window in row order, one offset
+    after the other, whatever the block. Results go to qq[c], dd[c]; ``s`` has 6 rows of PM_BLOCK."""
     for b0 in range(c0, c1, PM_BLOCK):
         nb = min(PM_BLOCK, c1 - b0)
-        _pm_weights(Hl, Pl, ii, b0, nb, r, t, wb, s1, sy)
-        _pm_moments(Hl, ii, b0, nb, r, wb, s1, sy, mb, qb, db)
+        _pm_sums(Hl, Pl, ii, b0, nb, r, t, cen, s)
         for c in range(nb):
-            qq[b0 + c] = qb[c]
-            dd[b0 + c] = db[c]
+            mc = s[1, c] / s[0, c]
+            qq[b0 + c] = s[2, c] - mc * s[1, c]
+            dd[b0 + c] = s[5, c] - 2.0 * mc * s[4, c] + mc * mc * s[3, c]
 
 
 @njit(parallel=True, **JIT)
@@ -341,7 +331,8 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel, T
         solve = np.zeros(C, dtype=np.bool_)
         qq = np.empty(C)
         dd = np.empty(C)
-        buf = np.empty((L * L + 5, PM_BLOCK))
+        cen = np.zeros(C)                    # each cell's centre for the one-pass sums: its window's mean
+        buf = np.empty((6, PM_BLOCK))
         for t in range(L):
             for f in range(5):
                 for c in range(C):
@@ -377,7 +368,10 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel, T
                 data[VARIANCE, bi, bj] = p0 + max(s, tau2)
         if c0 >= c1:
             continue
-        _paule_mandel_row(Hl, Pl, i - i0, c0, c1, r, t0, qq, dd, buf)
+        for c in range(c0, c1):
+            if solve[c]:
+                cen[c] = B[2, c] / B[0, c]
+        _paule_mandel_row(Hl, Pl, i - i0, c0, c1, r, t0, cen, qq, dd, buf)
         for c in range(c0, c1):
             if not solve[c]:
                 continue
