@@ -85,6 +85,11 @@ def build_parser() -> argparse.ArgumentParser:
                             "second of the source's time (default 10; every frame's depth and pose are logged)")
         p.add_argument("--threads", type=int, default=None,
                        help="numba threads of the mapper (default: all; fewer on a machine busy with other work)")
+        p.add_argument("--valid-margin", type=int, default=None, metavar="PX",
+                       help="drop depth pixels within PX columns of a no-data pixel or the image's side, where the "
+                            "stereo matcher's window was cut short (default 5; a replay of this project's recording "
+                            "uses the margin it names, 0 for one older than the margin); 0 for depth that is not "
+                            "straight from a stereo matcher or is already filtered. Config key: valid_margin_px")
         p.add_argument("--png-depth", action="store_true",
                        help="with --rrd: log uint16 depth PNG-compressed (smaller files, but too slow to encode for "
                             "848x480 at 30 frames/s)")
@@ -186,8 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="work folder caching the rendered walks and the fitted model (default: none for the "
                         "walks, elevmap-compare-work beside the --json report for the fitted model)")
     p.add_argument("--set", default=None, metavar="KEY=VALUE,...", dest="settings",
-                   help="map settings for every mapper: FusionParams fields and visibility_cleanup, e.g. "
-                        "spread_alpha=none,neighbour_radius=0 (what a fusion rule buys)")
+                   help="map settings for every mapper: FusionParams fields, visibility_cleanup and the camera's "
+                        "bin_at_plane and valid_margin_px, e.g. spread_alpha=none,neighbour_radius=0 or "
+                        "valid_margin_px=0 (what a rule buys)")
     p.add_argument("--fitted-model", metavar="PATH", default=None,
                    help="the fitted mapper's model file (elevmap characterize --model) instead of fitting one")
     p.add_argument("--json", metavar="PATH", help="the report (required)")
@@ -398,6 +404,15 @@ def _load_config(path):
         raise ValueError(f"{path}: {exc}") from None
 
 
+def _recorded_margins(src):
+    """The valid-region margins a replayed recording names per camera (a pose file's wrapper looks inside)."""
+    while src is not None:
+        if getattr(src, "valid_margins_px", None) is not None:
+            return src.valid_margins_px
+        src = getattr(src, "source", None)
+    return None
+
+
 def _print_summary(summary: dict) -> None:
     shown = {k: v for k, v in summary.items() if k != "map"}
     print(json.dumps(shown, indent=2, default=float))
@@ -427,6 +442,8 @@ def _cmd_run(args) -> int:
         config = dataclasses.replace(config, view_rate_hz=args.view_rate)
     if args.png_depth:
         config = dataclasses.replace(config, png_depth=True)
+    if args.valid_margin is not None:
+        config = dataclasses.replace(config, valid_margin_px=args.valid_margin)
     if config.sensor_model:
         from noise_model.d435 import SensorModel
 
@@ -458,7 +475,8 @@ def _cmd_run(args) -> int:
         with src if hasattr(src, "__enter__") else contextlib.nullcontext(src) as frames:
             summary = run_mapping(frames, config, rrd_path=args.rrd, spawn=args.spawn, total=total,
                                   show_progress=not args.no_progress, notes=f"elevmap {args.command} {args.source}",
-                                  callbacks=list(outputs.values()), nthreads=args.threads)
+                                  callbacks=list(outputs.values()), nthreads=args.threads,
+                                  recorded_margins_px=_recorded_margins(src))
         for name, out in outputs.items():
             summary[name] = out.finish(summary["map"])
     except BaseException:

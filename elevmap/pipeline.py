@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from noise_model.d435 import D435, SensorModel
+from noise_model.valid_margin import DEFAULT_VALID_MARGIN_PX, MAX_VALID_MARGIN_PX
 
 from .map.elevation_map import BYTES_PER_CELL, ElevationMap
 from .frame import Frame
@@ -64,6 +65,13 @@ class MappingConfig:
     sensor_model : str
         A sensor model file (``elevmap-sensor-model/1`` or ``/2``, as ``elevmap characterize`` writes
         it) for every camera of the run; "" = the paper's D435.
+    valid_margin_px : int or None
+        Every camera's valid-region margin [px] (:attr:`elevmap.mapper.Camera.valid_margin_px`): depth pixels
+        within this many columns of a no-data pixel or of the image's left or right border are dropped,
+        where a stereo matcher's window was cut short. 0 for depth that is not straight from a stereo
+        matcher or is already filtered. None: the margin a recording of this project names for its camera
+        (so that a replay maps exactly what was mapped; 0 for a recording that names none, made before the
+        margin existed), else ``DEFAULT_VALID_MARGIN_PX``.
     """
 
     length_m: float = 8.0
@@ -79,6 +87,7 @@ class MappingConfig:
     max_ellipsoids: int = 300
     png_depth: bool = False
     sensor_model: str = ""
+    valid_margin_px: int | None = None
 
     def __post_init__(self):
         """Types and ranges of every setting, before any work (a file's ``"false"`` or ``0`` included)."""
@@ -93,6 +102,11 @@ class MappingConfig:
         check_real(self.view_rate_hz, "view_rate_hz", 0.0, lo_open=True, unit=" [Hz]")
         if not isinstance(self.sensor_model, str):
             raise ValueError(f"sensor_model must be a file path (a string), got {self.sensor_model!r}")
+        m = self.valid_margin_px
+        if m is not None:
+            if isinstance(m, bool) or not hasattr(m, "__index__") or not 0 <= int(m) <= MAX_VALID_MARGIN_PX:
+                raise ValueError(f"valid_margin_px must be an integer in [0, {MAX_VALID_MARGIN_PX}] [px], got {m!r}")
+            object.__setattr__(self, "valid_margin_px", int(m))
 
     @classmethod
     def from_dict(cls, d: dict) -> "MappingConfig":
@@ -213,12 +227,14 @@ def map_error(emap: ElevationMap, truth_height) -> dict:
 def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=None, spawn: bool = False,
                 truth_height=None, show_progress: bool = True, total: int | None = None,
                 application_id: str = "elevmap", nthreads: int | None = None, notes: str | None = None,
-                callbacks=()) -> dict:
+                callbacks=(), recorded_margins_px=None) -> dict:
     """Map a sequence of :class:`Frame` records; optionally record everything to rerun.
 
     Parameters
     ----------
     frames : iterable of Frame
+        A source that replays a recording of this project (:class:`elevmap.sources.rrd.RrdSource`) also
+        names the valid-region margin each camera was mapped with (its ``valid_margins_px``).
     config : MappingConfig
     rrd_path : path, optional
         Write a rerun recording there (atomically: nothing is left if the run fails).
@@ -233,6 +249,10 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
     callbacks : sequence of callable
         Consumers of the map as it is built (a bag writer, a live view): each is called as
         ``callback(frame, T_map_cam, emap)`` after every frame is fused, ``T_map_cam`` the pose used.
+    recorded_margins_px : mapping of str to int, optional
+        The valid-region margin [px] per camera name that the frames were recorded with; default: the
+        ``valid_margins_px`` of ``frames`` when it has one. Used where ``config.valid_margin_px`` is None;
+        cameras it does not name take ``DEFAULT_VALID_MARGIN_PX``.
 
     Raises
     ------
@@ -256,6 +276,8 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
                         visibility_cleanup=config.visibility_cleanup, nthreads=nthreads)
     mapper = Mapper(emap, nthreads=nthreads)
     model = SensorModel.load(config.sensor_model) if config.sensor_model else D435
+    if recorded_margins_px is None:
+        recorded_margins_px = getattr(frames, "valid_margins_px", None) or {}
     recording = None
     clock = {"source": 0.0, "mapping": 0.0, "scoring": 0.0, "logging": 0.0, "callbacks": 0.0}
     t_start = time.perf_counter()
@@ -278,8 +300,11 @@ def run_mapping(frames, config: MappingConfig = MappingConfig(), *, rrd_path=Non
                 raise ValueError(f"sources must yield elevmap.frame.Frame records, got {type(frame).__name__}")
             t0 = time.perf_counter()
             if frame.camera not in mapper.cameras:
+                margin = config.valid_margin_px
+                if margin is None:
+                    margin = recorded_margins_px.get(frame.camera, DEFAULT_VALID_MARGIN_PX)
                 mapper.add_camera(Camera(frame.camera, frame.K, frame.width, frame.height,
-                                         depth_scale=frame.depth_scale, model=model))
+                                         depth_scale=frame.depth_scale, model=model, valid_margin_px=margin))
             cam = mapper.cameras[frame.camera]
             if not np.array_equal(cam.K, frame.K):
                 raise ValueError(f"camera {frame.camera!r} changed its intrinsics at frame {frame.index}")
@@ -370,7 +395,8 @@ class _Logger:
     """Everything a mapping run sends to rerun (through elevmap.viz, the project's rerun package).
 
     Every logged frame: the time, the camera pose, the depth image and the exact values a replay needs
-    (``meta/<camera>``), and the mapper's time per frame. At most ``view_rate_hz`` times per second of
+    (``meta/<camera>``: intrinsics, pose, pose covariance, stamp, depth scale, index and the camera's
+    valid-region margin), and the mapper's time per frame. At most ``view_rate_hz`` times per second of
     frame stamps (:meth:`view_due`): each camera's points with their ellipsoids (``world/points/<camera>``,
     ``world/points_cov/<camera>``: each camera has its own slots, so every camera of a robot is drawn), and
     the trail, the map's statistics and, every ``mesh_every`` views, the map meshes.
@@ -420,7 +446,8 @@ class _Logger:
             meter = None if frame.depth_scale is None else 1.0 / frame.depth_scale
             viz.log_depth(rec, f"world/{cam}/depth", frame.depth, meter=meter)
         viz.log_exact(rec, f"meta/{cam}", K=frame.K, T_map_cam=T, pose_cov=frame.pose_cov, stamp=frame.stamp,
-                      depth_scale=frame.depth_scale, index=frame.index)
+                      depth_scale=frame.depth_scale, index=frame.index,
+                      valid_margin_px=mapper.cameras[cam].valid_margin_px)
         viz.log_scalar(rec, "plots/time/ms_per_frame", stats["total_ms"])
         self.logged += 1
         if self.view_due(cam, frame.stamp, first_stamp):

@@ -13,6 +13,7 @@ row_medians                             per pixel, the median depth of its agree
 surface_depths                          median of agreeing row medians over 5 rows (binning; variance floor)
 point_covariances                       (N, 3, 3) camera-frame covariances
 to_map_frame                            (N, 3, 3) map-frame covariances with pose uncertainty
+drop_valid_margin                       depth pixels within r columns of no data or the image's side dropped
 depth_to_map_points                     the whole chain in six numba stages, three parallel regions (+ NumPy reference)
 Scene, render_depth, add_noise          scenes of primitives, numba ray casting, the reference noise
 walk, odometry_drift, simulate_walk     trajectories, odometry drift, simulated walks (noise_model.sim.walks)
@@ -36,6 +37,7 @@ from .geometry import (
     deproject, depth_edges, depth_to_metres, default_block_px, incidence_angle_stats, incidence_angles,
     despeckle, mixed_windows, row_medians, surface_depths,
 )
+from .valid_margin import DEFAULT_VALID_MARGIN_PX, drop_valid_margin, drop_valid_margin_reference
 from . import kernels
 from .kernels import MapPoints, Workspace, depth_to_map_points, depth_to_map_points_reference
 
@@ -97,6 +99,9 @@ __all__ = [
     "to_map_frame",
     "pose_jacobian",
     "skew",
+    "DEFAULT_VALID_MARGIN_PX",
+    "drop_valid_margin",
+    "drop_valid_margin_reference",
     "MapPoints",
     "Workspace",
     "depth_to_map_points",

@@ -9,7 +9,8 @@ The recording's root frame is the map frame.
 The recordings this project writes (:func:`elevmap.pipeline.run_mapping`) also carry each frame's
 intrinsics, pose, pose covariance, stamp and depth scale as float64 ``AnyValues`` under
 ``meta/<camera>``; with those the replay is bit-exact (rerun stores transforms and pinholes as
-float32).
+float32). They also name the valid-region margin each camera was mapped with (:attr:`RrdSource.valid_margins_px`),
+which :func:`elevmap.pipeline.run_mapping` applies again.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from noise_model.valid_margin import MAX_VALID_MARGIN_PX
+
 from ..frame import Frame
 
 __all__ = ["RrdSource", "read_rrd_frames"]
@@ -31,7 +34,13 @@ _DTYPES = {6: np.uint8, 7: np.int8, 8: np.uint16, 9: np.int16, 10: np.uint32, 11
            34: np.float32, 35: np.float64}
 _TRANSFORM = ("Transform3D:translation", "Transform3D:quaternion", "Transform3D:mat3x3", "Transform3D:relation",
               "Transform3D:scale")
-_META = ("K", "T_map_cam", "pose_cov", "stamp", "depth_scale", "index")
+_META = ("K", "T_map_cam", "pose_cov", "stamp", "depth_scale", "index", "valid_margin_px")
+
+
+def _camera_name(entity: str) -> str:
+    """'/world/front/depth' -> 'front': the camera a depth entity belongs to, as the recordings name it."""
+    e = entity.strip("/")
+    return e.split("/")[-2] if e.count("/") >= 1 else e
 
 
 def _parent_chain(entity: str) -> list[str]:
@@ -152,10 +161,19 @@ class RrdSource:
     timeline : str, optional
         The replay timeline ("frame" when the recording has it, else its first non-log timeline).
 
+    Attributes
+    ----------
+    valid_margins_px : dict of str to int
+        The valid-region margin [px] each camera was mapped with, for the cameras whose frames carry this
+        project's exact values (``meta/<camera>``): the one logged with the camera's first frame, or 0 when
+        none is logged (the recording was made before the margin existed, when every pixel was mapped).
+        Cameras of other recordings are not listed.
+
     Raises
     ------
     ValueError
-        The file is missing, truncated or corrupt, or holds no depth image under a pinhole.
+        The file is missing, truncated or corrupt, holds no depth image under a pinhole, or names a margin
+        that is not an integer in [0, ``MAX_VALID_MARGIN_PX``].
     """
 
     def __init__(self, path, entity: str | None = None, timeline: str | None = None):
@@ -185,6 +203,21 @@ class RrdSource:
                 self._items.append((t, e, pin))
         self._items.sort()
         self.entities = depth_entities
+        self.valid_margins_px = {}
+        for t, e, _ in self._items:
+            camera = _camera_name(e)
+            meta = store.get(f"/meta/{camera}", {})
+            if camera in self.valid_margins_px or not meta:
+                continue
+            v = meta["valid_margin_px"].latest_at(t) if "valid_margin_px" in meta else None
+            if v is None:
+                self.valid_margins_px[camera] = 0
+                continue
+            m = _to_numpy(v)
+            if m.size != 1 or not np.isfinite(m[0]) or m[0] != np.round(m[0]) or not 0 <= m[0] <= MAX_VALID_MARGIN_PX:
+                raise ValueError(f"{self.path}: meta/{camera} valid_margin_px is {m.tolist()}; one integer in "
+                                 f"[0, {MAX_VALID_MARGIN_PX}] [px] expected")
+            self.valid_margins_px[camera] = int(m[0])
 
     def __len__(self) -> int:
         return len(self._items)
@@ -243,7 +276,7 @@ class RrdSource:
         if not (np.isfinite(meter) and meter > 0):
             raise ValueError(f"{self.path}: depth image at {e} has meter = {meter}; it must be finite and > 0 "
                              "(depth units per metre)")
-        camera = e.strip("/").split("/")[-2] if e.strip("/").count("/") >= 1 else e.strip("/")
+        camera = _camera_name(e)
         meta = s.get(f"/meta/{camera}", {})
         exact = {name: meta[name].latest_at(t) for name in _META if name in meta}
         exact = {k2: _to_numpy(v) for k2, v in exact.items() if v is not None}

@@ -17,6 +17,7 @@ def test_the_committed_recording_is_small_and_replays():
     assert RECORDING.stat().st_size <= 5_000_000
     with RrdSource(RECORDING) as src:
         frames = list(src)
+        assert src.valid_margins_px == {"front": 0}      # made before the margin: a replay maps every pixel
     assert len(frames) == 24 and frames[0].depth.shape == (240, 424)
     assert all(f.T_map_cam is not None for f in frames)
     out = run_mapping(frames, show_progress=False)

@@ -141,3 +141,26 @@ def test_view_rate_option_and_bad_values(tmp_path, capsys):
     assert main(["run", "sim:stairs", "--frames", "1", "--threads", "1", "--no-progress"]) == 0
     with pytest.raises(ValueError, match="view_rate_hz"):
         MappingConfig(view_rate_hz=float("inf"))
+
+
+def test_valid_margin_option_and_config_key_reach_the_camera(tmp_path, capsys, monkeypatch):
+    seen = []
+    camera = pipeline.Camera
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["valid_margin_px"])
+        return camera(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "Camera", spy)
+    path = tmp_path / "walk.rrd"
+    assert main(["run", "sim:stairs", "--frames", "1", "--rrd", str(path), "--valid-margin", "2",
+                 "--no-progress"]) == 0
+    assert main(["replay", str(path), "--no-progress"]) == 0                  # the recording's margin
+    config = tmp_path / "map.toml"
+    config.write_text("[map]\nvalid_margin_px = 0\n")
+    assert main(["replay", str(path), "--config", str(config), "--no-progress"]) == 0
+    assert main(["replay", str(path), "--config", str(config), "--valid-margin", "7", "--no-progress"]) == 0
+    assert seen == [2, 2, 0, 7]
+    capsys.readouterr()
+    assert main(["run", "sim:stairs", "--frames", "1", "--valid-margin", "-1", "--no-progress"]) == 2
+    assert "valid_margin_px must be an integer in [0, 16]" in capsys.readouterr().err

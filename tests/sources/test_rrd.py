@@ -63,6 +63,7 @@ def test_a_recording_laid_out_like_reruns_realsense_example_replays(tmp_path, rn
     np.testing.assert_allclose(g.K, K, rtol=1e-6)
     np.testing.assert_allclose(g.T_map_cam, frame.T_map_cam, atol=1e-6)
     assert g.depth_scale == pytest.approx(0.001)
+    assert src.valid_margins_px == {}             # not this project's: the run's margin applies
 
 
 def test_bad_recordings_name_the_file_and_the_problem(tmp_path, rng):
@@ -108,3 +109,58 @@ def test_a_failed_run_leaves_no_recording_and_keeps_an_old_one(tmp_path, rng):
         run_mapping(broken(), MappingConfig(length_m=2.0), rrd_path=path, show_progress=False)
     assert path.read_bytes() == b"an older recording"
     assert [p.name for p in tmp_path.iterdir()] == ["walk.rrd"]
+
+
+def test_a_replay_applies_the_margin_the_recording_names(tmp_path, rng):
+    frames = floor_frames(4, rng)
+    path = tmp_path / "m3.rrd"
+    cfg = MappingConfig(length_m=4.0, valid_margin_px=3)
+    first = run_mapping(frames, cfg, rrd_path=path, show_progress=False)
+    src = RrdSource(path)
+    assert src.valid_margins_px == {"front": 3}
+    again = run_mapping(src, MappingConfig(length_m=4.0), show_progress=False)    # the margin from the file
+    np.testing.assert_array_equal(first["map"].data, again["map"].data)
+    default = run_mapping(frames, MappingConfig(length_m=4.0), show_progress=False)
+    assert not np.array_equal(first["map"].data, default["map"].data, equal_nan=True)   # 3 px is not 5 px
+    forced = run_mapping(RrdSource(path), MappingConfig(length_m=4.0, valid_margin_px=5), show_progress=False)
+    np.testing.assert_array_equal(default["map"].data, forced["map"].data)      # a set margin wins
+
+
+def test_a_recording_that_names_no_margin_replays_with_none(tmp_path, rng, monkeypatch):
+    from elevmap import viz
+
+    log_exact = viz.log_exact
+
+    def old_meta(rec, entity, static=False, **arrays):            # the meta of recordings before the margin
+        arrays.pop("valid_margin_px")
+        log_exact(rec, entity, static=static, **arrays)
+
+    frames = floor_frames(3, rng)
+    path = tmp_path / "old.rrd"
+    monkeypatch.setattr(viz, "log_exact", old_meta)
+    run_mapping(frames, MappingConfig(length_m=4.0, valid_margin_px=0), rrd_path=path, show_progress=False)
+    monkeypatch.setattr(viz, "log_exact", log_exact)
+    src = RrdSource(path)
+    assert src.valid_margins_px == {"front": 0}
+    replayed = run_mapping(src, MappingConfig(length_m=4.0), show_progress=False)
+    unmasked = run_mapping(frames, MappingConfig(length_m=4.0, valid_margin_px=0), show_progress=False)
+    np.testing.assert_array_equal(replayed["map"].data, unmasked["map"].data)
+
+
+def test_a_bad_recorded_margin_names_the_file_and_the_field(tmp_path, rng, monkeypatch):
+    from elevmap import viz
+
+    log_exact = viz.log_exact
+
+    def bad_meta(rec, entity, static=False, **arrays):
+        log_exact(rec, entity, static=static, **{**arrays, "valid_margin_px": 2.5})
+
+    path = tmp_path / "bad.rrd"
+    monkeypatch.setattr(viz, "log_exact", bad_meta)
+    run_mapping(floor_frames(1, rng), MappingConfig(length_m=2.0), rrd_path=path, show_progress=False)
+    with pytest.raises(ValueError, match=r"bad.rrd: meta/front valid_margin_px is \[2.5\]"):
+        RrdSource(path)
+    with pytest.raises(ValueError, match="valid_margin_px must be an integer"):
+        MappingConfig(valid_margin_px=17)
+    with pytest.raises(ValueError, match="valid_margin_px must be an integer"):
+        MappingConfig.from_dict({"valid_margin_px": "5"})
