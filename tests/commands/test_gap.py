@@ -450,8 +450,20 @@ def test_selftest_finds_every_effect_blind():
     table = EG.format_selftest(res)
     print(table)
     cases = {r["case"] for r in res["rows"]}
-    assert cases >= set(E.EFFECTS) | {"none", "+".join(EG.SELFTEST_PAIR)}
+    from noise_model.analysis.diagnosis.run import SELFTEST_UNSEEN
+
+    assert cases >= (set(E.EFFECTS) - set(SELFTEST_UNSEEN)) | {"none", "+".join(EG.SELFTEST_PAIR)}
     assert res["passed"], table
+
+
+def test_selftest_cases_hide_what_the_statistics_can_see():
+    from noise_model.analysis.diagnosis.run import SELFTEST_UNSEEN
+
+    default = [c["case"] for c in G.selftest_cases(None, 0)]
+    assert "frame_offset" in SELFTEST_UNSEEN and "frame_offset" not in default
+    assert [n for n in default if n in E.EFFECTS] == [n for n in E.ORDER if n not in SELFTEST_UNSEEN]
+    named = G.selftest_cases("frame_offset,correlated_noise", 0)
+    assert [c["case"] for c in named][:2] == ["frame_offset", "correlated_noise"]
 
 
 # ---------------------------------------------------------------------------------------------
