@@ -71,3 +71,25 @@ def test_the_simulators_sums_are_those_of_its_frames():
     for model in ([], fx):
         ra, rb = a.evaluate(model, ids), b.evaluate(model, ids)
         assert ra.G == rb.G and ra.p_value == rb.p_value
+
+
+def test_the_fits_base_simulations_from_the_workers_are_the_fits_own():
+    """With workers, the fits' base simulations are made there and put in the fits' cache: the same
+    entries, to the bit, as the fits' own simulations, and the same fitted parameters."""
+    from noise_model.analysis.effect_fits._common import _base_sims
+
+    real = [CaptureData.from_units(CaptureGeometry.from_capture_set_entry(CAM, e), u) for e, u in _entries()[:3]]
+    base = [("invalid_band", {"margin_px": 3.0}), ("correlated_noise", {"sigma_z_fraction": 0.8, "length_px": 2.0})]
+    geoms = {c.id: c.geometry for c in real}
+    with G.CaptureSimulator(geoms, D435, seed=4, jobs=2) as sim:
+        fitter = G.EffectFitter(real, D435, 4, None, sim)
+        params = fitter("correlated_noise", base)
+        filled = dict(fitter._cache)
+        assert fitter.n_prefilled == len(real)                # made in the workers, not by the fit
+    own: dict = {}
+    expected = _base_sims(real, D435, [E.make_effect(n, **p) for n, p in base], 4, own)
+    assert set(filled) >= set(own) and len(own) == len(real)
+    for key, c in zip(own, expected):
+        assert filled[key].id == c.id
+        np.testing.assert_array_equal(filled[key].depth_m, c.depth_m)
+    assert params == G.EffectFitter(real, D435, 4)("correlated_noise", base)

@@ -193,6 +193,12 @@ def _simulate_sums(geometry: CaptureGeometry, cap: GapCapture, n_frames: int, se
     return capture_sums(cap, _simulate_depth(geometry, n_frames, seed, model, objs), sampling)
 
 
+def _simulate_units(geometry: CaptureGeometry, n_frames: int, seed: int, model: SensorModel, effects) -> np.ndarray:
+    """A worker's task: one capture's simulation with ``effects`` in depth units (uint16 (F, H, W))."""
+    objs = canonical_order([make_effect(n, **p) for n, p in effects])
+    return simulate_capture(geometry, int(n_frames), capture_rng(seed, geometry.id), model, objs)
+
+
 def _worker_init() -> None:
     """A simulation worker uses one numba thread: the processes, not the threads, share the cores."""
     import numba
@@ -257,16 +263,31 @@ class CaptureSimulator:
         processes are started here; with ``jobs`` = 1 there are none, and this returns ``{}``)."""
         if self.jobs <= 1:
             return {}
+        pool = self._executor()
+        effects = [(n, dict(p)) for n, p in effects]
+        # the geometry travels without its render cache (the worker renders it again, to the same values)
+        return {i: pool.submit(_simulate_sums, dataclasses.replace(self.geometries[i]), captures[i],
+                               int(n_frames), self.seed, self.model, effects, sampling) for i in ids}
+
+    def _executor(self):
+        """The worker processes, started on first use."""
         if self._pool is None:
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
             self._pool = ProcessPoolExecutor(max_workers=self.jobs, mp_context=mp.get_context("spawn"),
                                              initializer=_worker_init)
+        return self._pool
+
+    def submit_units(self, captures: Sequence[CaptureData], effects) -> dict:
+        """``{id: future}`` of each capture's simulation in depth units (uint16 (F, H, W), as many frames as
+        the capture has), in the workers; ``{}`` with ``jobs`` = 1."""
+        if self.jobs <= 1:
+            return {}
+        pool = self._executor()
         effects = [(n, dict(p)) for n, p in effects]
-        # the geometry travels without its render cache (the worker renders it again, to the same values)
-        return {i: self._pool.submit(_simulate_sums, dataclasses.replace(self.geometries[i]), captures[i],
-                                     int(n_frames), self.seed, self.model, effects, sampling) for i in ids}
+        return {c.id: pool.submit(_simulate_units, dataclasses.replace(c.geometry), c.n_frames, self.seed,
+                                  self.model, effects) for c in captures}
 
     def close(self) -> None:
         """Stop the worker processes (if any were started)."""
@@ -281,22 +302,64 @@ class CaptureSimulator:
         self.close()
 
 
+class _KeysAsked(dict):
+    """A cache that claims to hold every key and records the keys it is asked for, in order: run through
+    :func:`noise_model.analysis.effect_fits._common._base_sims`, it names the cache entries of the base
+    simulations without simulating anything."""
+
+    def __init__(self):
+        super().__init__()
+        self.asked: list = []
+
+    def __contains__(self, key) -> bool:
+        self.asked.append(key)
+        return True
+
+    def __getitem__(self, key):
+        return None
+
+
 class EffectFitter:
-    """``fit(name, base_effects) -> params`` on the fit captures (base simulations cached per base model)."""
+    """``fit(name, base_effects) -> params`` on the fit captures (base simulations cached per base model).
+
+    With a ``simulator`` that has worker processes (:class:`CaptureSimulator`, ``jobs`` > 1), the base
+    simulations of a new base model are run in its workers and put in the fits' cache under the keys
+    :func:`noise_model.analysis.effect_fits.fit_effect` looks them up by (the same frames: each capture's
+    draws depend on the seed and its id only; tested against the fits' own simulations).
+    """
 
     def __init__(self, fit_real: Sequence[CaptureData], model: SensorModel = D435, seed: int = 0,
-                 rois: dict | None = None):
+                 rois: dict | None = None, simulator: CaptureSimulator | None = None):
         self.real, self.model, self.seed = list(fit_real), model, int(seed)
         ids = {c.id for c in self.real}
         # the fits see only each capture's region of interest, as the statistics do
         self.rois = None if not rois else {k: v for k, v in rois.items() if k in ids}
+        self.simulator = simulator
+        self.n_prefilled = 0                         # base simulations made in the simulator's workers
         self._cache: dict = {}
         self._base_key = None
+
+    def _prefill(self, base_effects) -> None:
+        """The base simulations of every fit capture, simulated in the simulator's workers, in the cache."""
+        sim = self.simulator
+        if sim is None or sim.jobs <= 1 or len(self.real) < 2:
+            return
+        from ..effect_fits._common import _base_sims
+
+        probe = _KeysAsked()
+        _base_sims(self.real, self.model, [make_effect(n, **p) for n, p in base_effects], self.seed, probe)
+        if len(probe.asked) != len(self.real) or len(set(probe.asked)) != len(self.real):
+            return                                   # not one entry per capture: leave the fits to simulate
+        futs = sim.submit_units(self.real, base_effects)
+        for c, key in zip(self.real, probe.asked):
+            self._cache[key] = CaptureData.from_units(c.geometry, futs[c.id].result())
+        self.n_prefilled += len(self.real)
 
     def __call__(self, name: str, base_effects) -> dict:
         key = model_key(base_effects)
         if key != self._base_key:                 # a new base model: drop the old base simulations
             self._cache, self._base_key = {}, key
+            self._prefill(base_effects)
         base = [make_effect(n, **p) for n, p in base_effects]
         try:
             params = fit_effect(name, self.real, self.model, base, seed=self.seed, cache=self._cache,
@@ -418,7 +481,9 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
         axis; e.g. the median over a mask of a floor, whose incidence changes across the image).
     jobs : int
         Worker processes that simulate the models' captures (:meth:`CaptureSimulator.sums`); the report
-        is the same for any number (each capture's draws depend on the seed and its id only).
+        is the same for any number (each capture's draws depend on the seed and its id only). The workers
+        are started with ``spawn``, which imports the calling script again: a script that asks for more
+        than one must call this under ``if __name__ == "__main__":``.
 
     Returns
     -------
@@ -468,7 +533,7 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
                            (angles or {}).get(c.id)) for c in real]
     with CaptureSimulator(geoms, model, seed, jobs) as simulator:
         dg = Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
-                       simulator, EffectFitter(fit_real, model, seed, rois or None),
+                       simulator, EffectFitter(fit_real, model, seed, rois or None, simulator),
                        binning=binning or Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
                        config=config or SelectionConfig(), progress=progress, fitted_ids=fitted)
         res = dg.run(candidates)
