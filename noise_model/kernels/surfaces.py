@@ -23,7 +23,7 @@ from numba import njit, prange
 
 from ..numba_config import JIT
 from .compiled import (
-    EDGES, PLANES, ROW_MEDIANS, agrees, agrees_select, agrees_select_root, interleaved, lane_median, rank_median,
+    EDGES, PLANES, ROW_MEDIANS, agrees, agrees_select, agrees_select_root, interleaved, rank_median,
     sigma_model, sort_lanes_any,
 )
 from .planes import planes_block_row
@@ -261,11 +261,17 @@ def _write_medians(buf, zc, cnt, seg_u0, seg_m0, seg_n, ns, v, fallback_own, out
     """out[v, u] for the lanes of the batch's ns segments (pixel seg_u0 + j is lane seg_m0 + j): the median of
     the agreeing values, and where none agrees the pixel's own depth (``fallback_own``) or NaN."""
     for q in range(ns):
-        for j in range(seg_n[q]):
-            lane = seg_m0[q] + j
+        m0 = np.uint64(seg_m0[q])
+        u0 = np.uint64(seg_u0[q])
+        for j in range(np.uint64(seg_n[q])):
+            lane = m0 + j
             k = cnt[lane]
+            # lane_median without branches: unsigned in-bounds indices also for k = 0, whose value is unused
+            lo = np.uint64(max(k - 1, 0) >> 1)
+            hi = np.uint64(k >> 1)
+            med = (buf[lo, lane] + buf[hi, lane]) / 2.0
             none = zc[lane] if fallback_own else np.nan
-            out[v, seg_u0[q] + j] = lane_median(buf, lane, k) if k > 0 else none
+            out[v, u0 + j] = med if k > 0 else none
 
 
 @njit(**JIT)
