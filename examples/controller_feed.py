@@ -18,6 +18,7 @@ import numpy as np
 
 from elevmap import Camera, ElevationMap, Mapper
 from elevmap.sources import RrdSource
+from noise_model import DEFAULT_VALID_MARGIN_PX
 from noise_model.sim import DEFAULT_T_BASE_CAM
 
 FEET_BASE = np.array([[0.35, 0.2, -0.4], [0.35, -0.2, -0.4], [-0.35, 0.2, -0.4], [-0.35, -0.2, -0.4]])
@@ -32,8 +33,10 @@ def main(path: str) -> None:
     with RrdSource(path) as src:
         for frame in src:
             if frame.camera not in mapper.cameras:
+                # the valid-region margin the recording was mapped with (0 if it predates the margin)
+                margin_px = src.valid_margins_px.get(frame.camera, DEFAULT_VALID_MARGIN_PX)
                 mapper.add_camera(Camera(frame.camera, frame.K, frame.width, frame.height,
-                                         depth_scale=frame.depth_scale))
+                                         depth_scale=frame.depth_scale, valid_margin_px=margin_px))
             emap.move_to(frame.T_map_cam[:2, 3])
             mapper.integrate(frame.camera, frame.depth, T_map_cam=frame.T_map_cam, pose_cov=frame.pose_cov,
                              stamp=frame.stamp)
