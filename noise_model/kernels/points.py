@@ -106,7 +106,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
         if parts & SURFACE_MEDIANS:
             surface_medians_block_row(by, depth, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, rows_half,
                                       surface_net, gain_px, mixed_px, rowmed, surface_z)
-        cu = np.empty(W, dtype=np.int64)
+        cu = np.empty(W, dtype=np.uint64)     # unsigned: the gathers by column need no wraparound select
         cz = np.empty(W)
         cf = np.empty(W, dtype=np.uint8)
         for v in range(by * b, min(H, by * b + b)):
@@ -122,7 +122,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
             for u in range(W):
                 z = depth[v, u] * scale
                 f = flags[v, u]
-                cu[k] = u
+                cu[k] = np.uint64(u)
                 cz[k] = z
                 cf[k] = f
                 k += 1 if (z >= zmin) & (z <= zmax) else 0
@@ -208,7 +208,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
                 hcov[0, i] = cxx
                 hcov[1, i] = cxy
                 hcov[2, i] = cyy
-                pix[i] = base + u
+                pix[i] = base + np.int64(u)
                 # the predicate of count_outside (NaN fails every comparison, so it counts)
                 ok = ((abs(x) <= coord_max) & (abs(y) <= coord_max) & (abs(zm) <= coord_max) & (czz >= var_min)
                       & (czz <= var_max) & (cxx >= 0.0) & (cxx < inf) & (cyy >= 0.0) & (cyy < inf)
