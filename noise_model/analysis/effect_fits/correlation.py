@@ -131,18 +131,18 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
     (:func:`_remove_frame_offset`): a per-frame offset (``frame_offset``) is a correlation of infinite
     length, which the field's length would otherwise stretch to take. The
     real-minus-base covariances at lags 0-11 px (rows and columns), divided by (1 - 1/F) and pooled
-    over captures by pair counts, give f^2 and l (:func:`_fit_gaussian_cov`).
+    over captures by pair counts, give f^2 and l (:func:`_fit_gaussian_cov`) from lags 1-11: lag 0 also
+    holds any white excess (disparity_noise, or a white axial noise in the base larger or smaller than
+    the real one, as an ``axial_refit`` fitted before this effect was in the model is), which would
+    otherwise flatten or sharpen the field's fitted shape.
 
     A capture of one frame has no temporal mean: x is its frame's residual about the target's best
-    plane (:func:`_spatial_standardised_residual`), whose lag covariance grows by f^2 rho(h), and lag 0
-    is left out of the fit when any capture has one frame (extra white noise, disparity_noise or a
-    refitted axial sigma, adds there only). Assumption: one frame cannot tell a field drawn afresh
+    plane (:func:`_spatial_standardised_residual`), whose lag covariance grows by f^2 rho(h). Assumption: one frame cannot tell a field drawn afresh
     every frame from a static one (static_pattern) or from a static share of it, so on single frames
     the whole excess spatial correlation is attributed to this effect (the temporal share is not
     identifiable; it is 1 here).
     """
     num, den, nF = np.zeros(len(_CORR_LAGS)), np.zeros(len(_CORR_LAGS)), 0
-    single = False
     for c, b in zip(real, base):
         g = c.geometry
         z, th, _, fb = _nominal(g, model)
@@ -167,7 +167,7 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
             if rr is None or rb is None:
                 continue
             (xr, wr), (xb, wb) = rr, rb
-            gain, single = 1.0, True
+            gain = 1.0
         cr, n = _lag_cov_masked(xr, wr, _CORR_LAGS)
         cb, _ = _lag_cov_masked(xb, wb, _CORR_LAGS)
         ok = np.isfinite(cr) & np.isfinite(cb)
@@ -177,9 +177,8 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
     if not nF or not (den > 0).all():
         raise ValueError("correlated_noise: needs captures at <= 60 deg with >= 100 interior pixels valid in "
                          "every frame")
-    lags, exc = np.array(_CORR_LAGS), num / den
-    if single:
-        lags, exc = lags[1:], exc[1:]
+    # lag 0 holds any white excess too (a refitted or extra white noise): the field is fitted on lags >= 1
+    lags, exc = np.array(_CORR_LAGS)[1:], (num / den)[1:]
     A, ell = _fit_gaussian_cov(lags, exc)
     return {"sigma_z_fraction": float(math.sqrt(max(A, 1e-8))), "length_px": float(ell)}
 
