@@ -18,7 +18,8 @@ CAM = {"width": 106, "height": 60, "fx": 53.0, "fy": 53.0, "ppx": 52.5, "ppy": 2
 
 def _entries():
     """Walls at 3 distances x 2 angles, pseudo-real with a correlated per-frame field and a dead left band."""
-    fx = [E.make_effect("invalid_band", margin_px=4.0), E.make_effect("correlated_noise", sigma_z_fraction=1.2, length_px=3.0)]
+    fx = [E.make_effect("invalid_band", margin_px=4.0),
+          E.make_effect("correlated_noise", sigma_z_fraction=1.2, length_px=3.0)]
     out = []
     for i, (d, y) in enumerate([(d, y) for d in (0.6, 1.0, 1.4) for y in (0.0, 30.0)]):
         entry = {"id": f"wall_z{d:.2f}_y{int(y):02d}",

@@ -213,10 +213,11 @@ class CaptureSimulator:
     :func:`noise_model.sim.effects.canonical_order`; capture ``id`` draws from :func:`capture_rng`, the
     same generator in every model and in :func:`noise_model.analysis.effect_fits.fit_effect`'s base simulations.
 
-    :meth:`sums` simulates captures and reduces each to its statistics' sums, in ``jobs`` worker processes
-    when ``jobs`` > 1 (one capture per task; :meth:`submit` starts them without waiting). A capture's draws depend only on the seed and its id, never on
-    the process or the order, so the sums are the same for any ``jobs``. Workers are started on first use
-    (``spawn``: numba's thread pools are not safe to fork) and stopped by :meth:`close` (or ``with``).
+    :meth:`sums` simulates captures and reduces each to its statistics' sums, in ``jobs`` worker processes when
+    ``jobs`` > 1 (one capture per task; :meth:`submit` starts them without waiting). A capture's draws depend
+    only on the seed and its id, never on the process or the order, so the sums are the same for any ``jobs``.
+    Workers are started on first use (``spawn``: numba's thread pools are not safe to fork) and stopped by
+    :meth:`close` (or ``with``).
 
     Parameters
     ----------
