@@ -334,7 +334,9 @@ def run_selftest(effects=None, seed: int = 0, n_frames: int = 12, width: int = 4
                  overwrite: bool = False) -> dict:
     """``elevmap gap --selftest``: the diagnosis must find effects it was not told about.
 
-    For every effect of the library (or ``effects``): pseudo-real data = the reference simulation of
+    For every effect of the library but those in
+    :data:`noise_model.analysis.diagnosis.run.SELFTEST_UNSEEN` (or every one of ``effects``, those
+    included): pseudo-real data = the reference simulation of
     :func:`selftest_geometries` (18 walls, or 12 boards before a background for the edge effects,
     ``n_frames`` frames at ``width`` x ``height``) plus that effect at parameters drawn at random from
     :data:`noise_model.sim.effects.PARAM_RANGES` (seeded by ``seed``; the diagnosis is not given them); the

@@ -45,7 +45,7 @@ class SelectionConfig:
         reference model gets wrong by orders of magnitude, the next effect's share of the baseline is
         small however real it is, while its share of what is left is what a user gains by adding it.
     max_effects : int
-        At most this many effects are selected (the library holds 12; the selection normally stops
+        At most this many effects are selected (the library holds 13; the selection normally stops
         earlier, when no candidate passes the held-out test or the gap left is within the floor).
     prune : bool
         From the second round on, only candidates that shrank the fit gap in the previous round are
