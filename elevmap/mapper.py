@@ -17,7 +17,7 @@ import noise_model as nm
 from noise_model.checks import check_intrinsics, check_positive_scalar, check_transform
 from noise_model.d435 import SensorModel
 from noise_model.kernels import MAX_DEPTH_M, MIN_DEPTH_M
-from noise_model.valid_margin import (DEFAULT_VALID_MARGIN_PX, MAX_VALID_MARGIN_PX, drop_valid_margin,
+from noise_model.valid_margin import (DEFAULT_VALID_MARGIN_PX, check_valid_margin_px, drop_valid_margin,
                                      drop_valid_margin_reference)
 
 from .map.elevation_map import ElevationMap
@@ -86,11 +86,7 @@ class Camera:
             raise ValueError(f"camera {self.name!r}: variance_model must be callable")
         if not isinstance(self.bin_at_plane, (bool, np.bool_)):
             raise ValueError(f"camera {self.name!r}: bin_at_plane must be True or False, got {self.bin_at_plane!r}")
-        m = self.valid_margin_px
-        if isinstance(m, bool) or not hasattr(m, "__index__") or not 0 <= int(m) <= MAX_VALID_MARGIN_PX:
-            raise ValueError(f"camera {self.name!r}: valid_margin_px must be an integer in "
-                             f"[0, {MAX_VALID_MARGIN_PX}] [px], got {m!r}")
-        self.valid_margin_px = int(m)
+        self.valid_margin_px = check_valid_margin_px(self.valid_margin_px, f"camera {self.name!r}: valid_margin_px")
 
 
 class Mapper:

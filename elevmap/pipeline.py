@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from noise_model.d435 import D435, SensorModel
-from noise_model.valid_margin import DEFAULT_VALID_MARGIN_PX, MAX_VALID_MARGIN_PX
+from noise_model.valid_margin import DEFAULT_VALID_MARGIN_PX, check_valid_margin_px
 
 from .map.elevation_map import BYTES_PER_CELL, ElevationMap
 from .frame import Frame
@@ -102,11 +102,8 @@ class MappingConfig:
         check_real(self.view_rate_hz, "view_rate_hz", 0.0, lo_open=True, unit=" [Hz]")
         if not isinstance(self.sensor_model, str):
             raise ValueError(f"sensor_model must be a file path (a string), got {self.sensor_model!r}")
-        m = self.valid_margin_px
-        if m is not None:
-            if isinstance(m, bool) or not hasattr(m, "__index__") or not 0 <= int(m) <= MAX_VALID_MARGIN_PX:
-                raise ValueError(f"valid_margin_px must be an integer in [0, {MAX_VALID_MARGIN_PX}] [px], got {m!r}")
-            object.__setattr__(self, "valid_margin_px", int(m))
+        if self.valid_margin_px is not None:
+            object.__setattr__(self, "valid_margin_px", check_valid_margin_px(self.valid_margin_px, "valid_margin_px"))
 
     @classmethod
     def from_dict(cls, d: dict) -> "MappingConfig":

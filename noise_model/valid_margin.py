@@ -35,8 +35,8 @@ from numba import njit, prange
 
 from .numba_config import JIT, threads
 
-__all__ = ["DEFAULT_VALID_MARGIN_PX", "MAX_VALID_MARGIN_PX", "drop_valid_margin", "drop_valid_margin_reference",
-           "has_data"]
+__all__ = ["DEFAULT_VALID_MARGIN_PX", "MAX_VALID_MARGIN_PX", "check_valid_margin_px", "drop_valid_margin",
+           "drop_valid_margin_reference", "has_data"]
 
 #: Default margin [px], the same at every D435 depth mode (the matcher's windows are fixed in pixels): the
 #: half width of the matcher's 9 x 9 cost box plus one column. docs/fusion.md gives the margins measured.
@@ -56,19 +56,22 @@ def has_data(depth) -> np.ndarray:
         return np.isfinite(d) & (d > 0)
 
 
+def check_valid_margin_px(margin_px, what: str = "margin_px") -> int:
+    """``margin_px`` as an int, or ValueError naming ``what``: an integer (not a bool, not a float) in
+    [0, :data:`MAX_VALID_MARGIN_PX`] [px]."""
+    if (isinstance(margin_px, bool) or not hasattr(margin_px, "__index__")
+            or not 0 <= int(margin_px) <= MAX_VALID_MARGIN_PX):
+        raise ValueError(f"{what} must be an integer in [0, {MAX_VALID_MARGIN_PX}] [px], got {margin_px!r}")
+    return int(margin_px)
+
+
 def _check(depth, margin_px):
     d = np.asarray(depth)
     if d.ndim != 2 or d.shape[0] < 1 or d.shape[1] < 1:
         raise ValueError(f"depth must be a non-empty 2-D image (H, W), got shape {d.shape}")
     if d.dtype not in (np.uint16, np.float32, np.float64):
         raise ValueError(f"depth must be uint16 depth units or float32/float64 metres, got dtype {d.dtype}")
-    d = np.ascontiguousarray(d)
-    if isinstance(margin_px, bool) or not hasattr(margin_px, "__index__"):
-        raise ValueError(f"margin_px must be an integer in [0, {MAX_VALID_MARGIN_PX}] [px], got {margin_px!r}")
-    m = int(margin_px)
-    if not 0 <= m <= MAX_VALID_MARGIN_PX:
-        raise ValueError(f"margin_px must be in [0, {MAX_VALID_MARGIN_PX}] [px], got {m}")
-    return d, m
+    return np.ascontiguousarray(d), check_valid_margin_px(margin_px)
 
 
 @njit(**JIT)
