@@ -199,8 +199,13 @@ class Mapper:
             raise ValueError(f"stamp must be finite, got {stamp!r}")
         # the noise kernel counted the values out of the map's range as it wrote them: with none (and no
         # variance_model, whose points are not counted) the map need not check them again
+        # the camera's model states its per-frame error (noise_model.SensorModel.frame_error): the map takes
+        # each frame's information per cell from it; a variance_model replaces the model's noise altogether
+        frame_error = (cam.model.frame_error(float(cam.K[0, 0]))
+                       if cam.variance_model is None and cam.model.has_frame_error else None)
         stats = self.map._update_validated(pts.points_map, pts.height_var, pts.horizontal_cov, stamp,
-                                           T_map_cam[:3, 3].copy(), impl, check=pts.n_outside != 0)
+                                           T_map_cam[:3, 3].copy(), impl, check=pts.n_outside != 0,
+                                           frame_error=frame_error)
         t2 = time.perf_counter()
         stats.update(points=int(len(pts.pixel)), noise_ms=1e3 * (t1 - t0), fusion_ms=1e3 * (t2 - t1),
                      total_ms=1e3 * (t2 - t0))

@@ -64,7 +64,7 @@ from .formulas import (
 
 __all__ = ["SensorModel", "D435", "axial_sigma", "axial_variance", "expected_rms_error", "THETA_MAX_DEFAULT",
            "THETA_QUADRATURE", "THETA_GRID", "axial_sigma_unchecked", "axial_variance_unchecked", "FAMILIES",
-           "MODEL_FORMAT", "MODEL_FORMAT_DISPARITY"]
+           "MODEL_FORMAT", "MODEL_FORMAT_DISPARITY", "MODEL_FORMAT_FRAME_ERROR"]
 
 #: The model families of :class:`SensorModel` (see the module docstring).
 FAMILIES = ("paper", "disparity")
@@ -74,6 +74,10 @@ FAMILIES = ("paper", "disparity")
 #: reader that knows only the paper's family rejects instead of reading it as the paper's.
 MODEL_FORMAT = "elevmap-sensor-model/1"
 MODEL_FORMAT_DISPARITY = "elevmap-sensor-model/2"
+#: A model that also states its per-frame error (``frame_variance_ratio``, ``error_correlation_px``) is
+#: written as the third, with ``family`` and ``disparity_sigma_px`` always present; a model without them
+#: keeps the first or second, so older readers read it as before.
+MODEL_FORMAT_FRAME_ERROR = "elevmap-sensor-model/3"
 
 #: Default cap on the incidence angle [rad]: 80 deg. The paper measured up to 75 deg; its theta term
 #: diverges at 90 deg, where a stereo camera sees nothing at all. At 80 deg and 1 m sigma_z is already
@@ -114,6 +118,19 @@ class SensorModel:
     frame_fx_px : float or None
         The focal length [px] of the frame the model is applied to (:meth:`with_focal`), for the disparity
         family's sigma_z in the NumPy functions; a property of the frame, never saved.
+    frame_variance_ratio : float
+        Variance of one frame's depth error about the truth over the modelled (per-pixel temporal)
+        variance, >= 1: a stereo camera adds a static error pattern that a static capture's temporal
+        standard deviation cannot see, yet a moving camera sees it anew in every frame. 1 (default): the
+        modelled sigma is the whole per-frame error.
+    error_correlation_px : float
+        Gaussian correlation length l [px] of that per-frame error across the image,
+        rho(h) = exp(-h^2 / (2 l^2)), at the focal length ``error_correlation_fx_px``; 0 (default): the
+        pixels' errors are independent. A map fuses the pixels a cell holds as fewer independent samples
+        (:meth:`frame_error`).
+    error_correlation_fx_px : float or None
+        Focal length [px] of the stream the correlation length was measured on (it scales with the focal
+        length of the frame it is applied to); None when there is no correlation.
     """
 
     name: str = "D435 (Ahn et al. 2019)"
@@ -134,6 +151,9 @@ class SensorModel:
     family: str = "paper"
     disparity_sigma_px: tuple = (0.08, 0.0)
     frame_fx_px: float | None = None
+    frame_variance_ratio: float = 1.0
+    error_correlation_px: float = 0.0
+    error_correlation_fx_px: float | None = None
 
     def __post_init__(self):
         if self.family not in FAMILIES:
@@ -150,6 +170,23 @@ class SensorModel:
         if self.frame_fx_px is not None:
             object.__setattr__(self, "frame_fx_px",
                                check_positive_scalar(self.frame_fx_px, "frame_fx_px", upper=1e5, unit=" px"))
+        ratio, ell, fx = self.frame_variance_ratio, self.error_correlation_px, self.error_correlation_fx_px
+        if isinstance(ratio, bool) or not isinstance(ratio, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(ratio) and 1.0 <= ratio <= 100.0):
+            raise ValueError(f"sensor model {self.name!r}: frame_variance_ratio must be a number in [1, 100], "
+                             f"got {ratio!r}")
+        if isinstance(ell, bool) or not isinstance(ell, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(ell) and 0.0 <= ell <= 1000.0):
+            raise ValueError(f"sensor model {self.name!r}: error_correlation_px must be a number in [0, 1000] px, "
+                             f"got {ell!r}")
+        if ell > 0.0 and fx is None:
+            raise ValueError(f"sensor model {self.name!r}: error_correlation_px > 0 needs error_correlation_fx_px, "
+                             "the focal length [px] it was measured at")
+        object.__setattr__(self, "frame_variance_ratio", float(ratio))
+        object.__setattr__(self, "error_correlation_px", float(ell))
+        if fx is not None:
+            object.__setattr__(self, "error_correlation_fx_px",
+                               check_positive_scalar(fx, "error_correlation_fx_px", upper=1e5, unit=" px"))
 
     # -- the paper's coefficients under their own names -------------------------------------------
     @property
@@ -236,6 +273,23 @@ class SensorModel:
         changes.setdefault("name", f"D435 (disparity noise, sigma_d = {float(s0):g} + {float(s1):g} theta^2 px)")
         return replace(self, family="disparity", disparity_sigma_px=(float(s0), float(s1)), **changes)
 
+    @property
+    def has_frame_error(self) -> bool:
+        """True when the model states a per-frame error beyond its per-pixel sigma (ratio > 1 or a correlation)."""
+        return self.frame_variance_ratio != 1.0 or self.error_correlation_px > 0.0
+
+    def frame_error(self, fx_px: float) -> tuple[float, float]:
+        """(correlation length [px] at a frame of focal length ``fx_px``, per-frame variance ratio) for the map.
+
+        The length scales with the focal length: a correlation measured over l pixels of one stream spans
+        l f / f_measured pixels of a stream of focal length f (the same angle). (0, ratio) when the model
+        has no correlation.
+        """
+        fx = check_positive_scalar(fx_px, "fx_px", upper=1e5, unit=" px")
+        if self.error_correlation_px <= 0.0:
+            return 0.0, self.frame_variance_ratio
+        return self.error_correlation_px * fx / self.error_correlation_fx_px, self.frame_variance_ratio
+
     def with_focal(self, fx_px: float) -> "SensorModel":
         """A copy bound to a frame of focal length ``fx_px`` [px] (what the disparity family's sigma_z needs)."""
         return replace(self, frame_fx_px=check_positive_scalar(fx_px, "fx_px", upper=1e5, unit=" px"))
@@ -251,12 +305,18 @@ class SensorModel:
     def to_dict(self) -> dict:
         """The model as plain JSON types: :data:`MODEL_FORMAT` for the paper's family (the same keys as
         before the disparity family existed), :data:`MODEL_FORMAT_DISPARITY` with ``family`` and
-        ``disparity_sigma_px`` for the disparity family. ``frame_fx_px`` (a property of a frame) is not
-        saved."""
+        ``disparity_sigma_px`` for the disparity family, :data:`MODEL_FORMAT_FRAME_ERROR` (either family)
+        with ``frame_variance_ratio``, ``error_correlation_px`` and ``error_correlation_fx_px`` when the
+        model states a per-frame error. ``frame_fx_px`` (a property of a frame) is not saved."""
         d = asdict(self)
         d["axial_coefficients"] = list(self.axial_coefficients)
         d["hfov_deg"] = [[w, h, v] for (w, h), v in self.hfov_deg.items()]
         del d["frame_fx_px"]
+        if self.has_frame_error:
+            d["disparity_sigma_px"] = list(self.disparity_sigma_px)
+            d["format"] = MODEL_FORMAT_FRAME_ERROR
+            return d
+        del d["frame_variance_ratio"], d["error_correlation_px"], d["error_correlation_fx_px"]
         if self.family == "paper":
             del d["family"], d["disparity_sigma_px"]
             d["format"] = MODEL_FORMAT
@@ -267,16 +327,23 @@ class SensorModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SensorModel":
-        """Read :meth:`to_dict`'s output (either format); a missing or bad key raises ``ValueError`` naming it."""
-        if not isinstance(d, dict) or d.get("format") not in (MODEL_FORMAT, MODEL_FORMAT_DISPARITY):
+        """Read :meth:`to_dict`'s output (any of its formats; the first two have no per-frame error, as the
+        files written before it); a missing or bad key raises ``ValueError`` naming it."""
+        formats = (MODEL_FORMAT, MODEL_FORMAT_DISPARITY, MODEL_FORMAT_FRAME_ERROR)
+        if not isinstance(d, dict) or d.get("format") not in formats:
             fmt = d.get("format") if isinstance(d, dict) else type(d).__name__
             raise ValueError(f"not an elevmap sensor model (format {fmt!r})")
         try:
             hfov = {(int(w), int(h)): float(v) for w, h, v in d["hfov_deg"]}
             extra = {}
-            if d["format"] == MODEL_FORMAT_DISPARITY:
+            if d["format"] in (MODEL_FORMAT_DISPARITY, MODEL_FORMAT_FRAME_ERROR):
                 extra = {"family": str(d["family"]),
                          "disparity_sigma_px": tuple(float(x) for x in d["disparity_sigma_px"])}
+            if d["format"] == MODEL_FORMAT_FRAME_ERROR:
+                fx = d["error_correlation_fx_px"]
+                extra.update(frame_variance_ratio=float(d["frame_variance_ratio"]),
+                             error_correlation_px=float(d["error_correlation_px"]),
+                             error_correlation_fx_px=None if fx is None else float(fx))
             model = cls(
                 name=str(d["name"]),
                 axial_coefficients=tuple(float(x) for x in d["axial_coefficients"]),

@@ -8,8 +8,12 @@ axial noise, lateral noise, the plane-fit residual and the systematic error
 
 * the JSON report (``--json``), atomically;
 * the fitted model, ``<json stem>.model.json`` next to the report unless ``model_path`` says otherwise
-  (format ``elevmap-sensor-model/1``; ``noise_model.SensorModel.load`` reads it, so the mapper, the
-  simulator and the gap diagnosis can use it in place of the paper's);
+  (format ``elevmap-sensor-model/1``, ``/2`` for the disparity family, ``/3`` when it carries a per-frame
+  error; ``noise_model.SensorModel.load`` reads each, so the mapper, the simulator and the gap diagnosis
+  can use it in place of the paper's). The per-frame error: the axial model is fitted to the per-pixel
+  temporal sigma, and the file also carries how much larger one frame's error is once the static pattern
+  a static capture cannot see is added, and its correlation length in pixels
+  (:mod:`noise_model.analysis.frame_error`), from which the map takes a frame's information per cell;
 * the paper's figures as PNG files (``--figures DIR``) and in a rerun recording (``--rrd``).
 
 A capture whose target cannot be found is listed under ``failures`` with the reason; the others still
@@ -34,7 +38,7 @@ from noise_model.d435 import D435
 from noise_model.reporting import check_names
 
 from ..fileio import check_outputs, json_ready, write_json_atomic
-from .characterize_models import fit_families, predict_capture_set
+from .characterize_models import fit_families, measure_frame_error, predict_capture_set, with_frame_error
 from .protocol import PROTOCOL  # the recording protocol (also in ``elevmap characterize --help``)
 
 __all__ = ["run_characterize", "characterize_capture", "format_summary", "figure_series", "plane_distance_panels",
@@ -506,7 +510,10 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         ``s1_px_per_rad2``, ``stderr``, ``s1_fixed``...; None with ``fit_disparity_reason``), ``heldout``
         (:func:`noise_model.analysis.family_fit.heldout_errors`), ``family`` (the family of the model written:
         the one with the smaller held-out error), ``skipped_statistics`` (captures with fitted geometry and
-        what was not computed for them), ``prediction`` (with ``predict_dir``), ``sigma_L_m``, ``sigma_R_m``, ``sigma_L_px``,
+        what was not computed for them), ``frame_error`` (the per-frame error a map sees beyond the
+        per-pixel temporal sigma, and its correlation length, which the model file carries:
+        :func:`elevmap.commands.characterize_models.measure_frame_error`), ``prediction`` (with
+        ``predict_dir``), ``sigma_L_m``, ``sigma_R_m``, ``sigma_L_px``,
         ``sigma_R_px`` (90th percentiles; None when no edge was measurable), ``lateral`` (details),
         ``captures`` (one record per measured capture: ``id``, ``axial_sigma_m``, ``lateral_left_m``,
         ``lateral_right_m``, their ``_px`` and ``_stderr_m`` versions, ``plane_residual_std_m``,
@@ -542,6 +549,8 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
             records.append(rec)
 
     fit_d, fit_reason, fit, fam = fit_families(records, cs.camera, MAX_REL_NOISE)
+    done = {r["id"] for r in records}
+    frame_error = measure_frame_error(cs, [c for c in selected if c.id in done])
     lat_l, lat_r = _lateral_summary(records, "left"), _lateral_summary(records, "right")
     report = {
         "format": REPORT_FORMAT,
@@ -565,6 +574,7 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
                               "all frames; sigma_L / sigma_R = the 90th percentile over the captures after "
                               "removing each capture's sampling error (empirical-Bayes shrinkage of log variances)",
                     "left": lat_l, "right": lat_r, "paper_sigma_L_m": D435.sigma_L, "paper_sigma_R_m": D435.sigma_R},
+        "frame_error": frame_error,
         "captures": [{k: v for k, v in r.items() if not k.startswith("_")} for r in records],
         "failures": failures,
         "model_path": None, "figures": [], "rrd": None,
@@ -581,6 +591,7 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
             name=f"{cam.get('model') or 'D435'} (characterised from {cs.folder.name}, {better} family)",
             baseline_m=cam.get("baseline_m"), mode=(int(cam["width"]), int(cam["height"]), float(cam["fx"])),
             disparity=None if better == "paper" else (dfit.s0, dfit.s1))
+        model = with_frame_error(model, frame_error)
         report["family"] = better
         report["model"] = model.to_dict()
         report["model"]["lateral_from"] = {

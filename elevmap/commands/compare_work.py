@@ -38,6 +38,10 @@ FIT_FRAMES = 20
 FIT_SEED = 0
 #: Version of the cache's file layout.
 CACHE_FORMAT = "elevmap-compare-cache/1"
+#: What a cached characterisation measured: 2 adds the per-frame error the model file carries
+#: (:mod:`noise_model.analysis.frame_error`), so a model fitted before it is fitted again (from the same
+#: capture set).
+CHARACTERIZE_VERSION = 2
 
 
 def reality_key(reality: str, preset: str = "default", effects_digest: str | None = None) -> str:
@@ -160,7 +164,7 @@ class WorkDir:
         key_path = folder / "key.json"
         key = {"format": CACHE_FORMAT, "version": _version(), "reality": reality, "sensor": sensor,
                "preset": preset, "width": int(width), "height": int(height), "seed": int(seed),
-               "frames": int(n_frames)}
+               "frames": int(n_frames), "characterize": CHARACTERIZE_VERSION}
         cached = False
         if key_path.is_file() and model_path.is_file() and report_path.is_file():
             try:

@@ -130,7 +130,7 @@ class ElevationMap:
 
     # -- update ----------------------------------------------------------------------------------
     def update(self, points_map, height_var, stamp: float | None = None, sensor_origin_map=None,
-               horizontal_cov=None, *, impl: str = "numba") -> dict:
+               horizontal_cov=None, *, impl: str = "numba", frame_error=None) -> dict:
         """Fuse one frame of map-frame points.
 
         Parameters
@@ -149,6 +149,10 @@ class ElevationMap:
             (Sigma_xx, Sigma_xy, Sigma_yy) of each point [m^2] for the horizontal-variance layers.
         impl : {"numba", "numpy"}
             The compiled kernel or its NumPy reference.
+        frame_error : (float, float), optional
+            The frame's error correlation length [px] and variance ratio, which scale its information per
+            cell (:mod:`elevmap.map.fusion`; :meth:`noise_model.SensorModel.frame_error` gives them for a
+            camera); None: the points' variances are the whole error and the points independent.
 
         Returns
         -------
@@ -197,9 +201,11 @@ class ElevationMap:
             raise ValueError(f"impl must be 'numba' or 'numpy', got {impl!r}")
         # the values of the points (finite, coordinates and variances in range) are checked by the fusion
         # (numba: in its first pass, before it changes anything; numpy: check_point_values first)
-        return self._update_validated(p, var, hcov, stamp, origin, impl)
+        fusion.check_frame_error(frame_error)
+        return self._update_validated(p, var, hcov, stamp, origin, impl, frame_error=frame_error)
 
-    def _update_validated(self, p, var, hcov, stamp: float, origin, impl: str = "numba", check: bool = True) -> dict:
+    def _update_validated(self, p, var, hcov, stamp: float, origin, impl: str = "numba", check: bool = True,
+                          frame_error=None) -> dict:
         """:meth:`update` on inputs whose shapes and dtypes are checked (the fusion checks their values unless
         ``check`` is False: points whose producer counted none out of range, see :func:`fusion.fuse_frame`)."""
         clean = origin is not None and self.visibility_cleanup
@@ -207,10 +213,11 @@ class ElevationMap:
             # with the clean-up to come, the fusion's pass keeps each cell's lowest ray end for it
             touched, box = fusion.fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params,
                                              self._ws, self.nthreads,
-                                             visibility.ENDPOINT_MARGIN_SIGMAS if clean else None, check)
+                                             visibility.ENDPOINT_MARGIN_SIGMAS if clean else None, check,
+                                             frame_error)
         else:
             touched, box = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp,
-                                                       self.fusion_params)
+                                                       self.fusion_params, frame_error)
         cleared = 0
         if clean and box is not None:
             cleared = self._visibility(origin, p, var, stamp, impl, box)

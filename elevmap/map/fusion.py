@@ -48,6 +48,22 @@ information of n_eff average points to a cell (its weights are scaled by n_eff /
 because neighbouring D435 pixels share their errors and hundreds of them are not hundreds of
 independent measurements.
 
+Per-frame error of the camera's model (``frame_error = (l, r)``, from
+:meth:`noise_model.SensorModel.frame_error`): a frame's error has variance r times the points' modelled
+variance and a Gaussian correlation length of l pixels. The n points a frame puts in a cell are its
+pixels there, taken as a square patch of side a = sqrt(n) px; with rho(h) = exp(-h^2 / (2 l^2)) separable
+in rows and columns, the variance of their mean is sigma^2 rho_bar(a)^2 with rho_bar(a) the mean of
+rho(|i - j|) over pairs of a row's pixels, so the patch holds
+
+    n_eff = min(n, max(1, (W(a) / S(a))^2)),   S(a) = a + 2 sum_{1 <= k < a} (a - k) rho(k),
+                                                W(a) = S(a) with rho = 1,
+
+independent samples (:func:`effective_samples`), and the frame's sums in the cell are scaled by
+n_eff / (n r), after the cap (n_eff <= ``max_points_per_frame``). l = 0 and r = 1 (a model without a
+measured per-frame error: the paper's, a reference) leave the sums as they are. An elongated patch (a
+grazing view) holds more independent samples than the square of its area: the rule then understates the
+frame's information, the safe side.
+
 After the update variances are clamped below at ``min_variance``; a cell whose variance exceeds
 ``max_variance`` becomes unknown.
 
@@ -90,7 +106,7 @@ from .layers import (
 )
 
 __all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "fuse_frame_reference", "touched_box", "PARTIALS",
-           "REMOVED_PARAMS"]
+           "REMOVED_PARAMS", "effective_samples", "check_frame_error"]
 
 #: Number of partial grids (fixed, so that the summation order never depends on the thread count).
 PARTIALS = 8
@@ -205,15 +221,87 @@ class FusionParams:
             raise ValueError(f"neighbour_estimator must be one of {ESTIMATORS}, got {self.neighbour_estimator!r}")
         check_int(self.min_points, "min_points", 1, 10000)
 
-    def array(self, resolution_m: float) -> np.ndarray:
+    def array(self, resolution_m: float, frame_error=None) -> np.ndarray:
         """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off),
-        spread z (normal quantile of 1 - spread_alpha; -1 = off), spread ratio."""
+        spread z (normal quantile of 1 - spread_alpha; -1 = off), spread ratio, and the frame's error
+        correlation length l [px] (0 = none) and variance ratio r (1 = none) from ``frame_error`` = (l, r)
+        (module docstring; None: (0, 1))."""
         min_h = (resolution_m / 2) ** 2 if self.min_horizontal_variance is None else self.min_horizontal_variance
+        ell, ratio = check_frame_error(frame_error)
         return np.array([self.mahalanobis_threshold, self.min_variance, self.max_variance, min_h,
                          self.max_horizontal_variance, float(self.change_min_points),
                          0.0 if self.max_points_per_frame is None else float(self.max_points_per_frame),
                          -1.0 if self.spread_alpha is None else NormalDist().inv_cdf(1.0 - self.spread_alpha),
-                         float(self.spread_ratio)])
+                         float(self.spread_ratio), ell, ratio])
+
+
+def check_frame_error(frame_error) -> tuple[float, float]:
+    """(l [px], r) of a frame's error from ``frame_error`` = (l, r) or None ((0, 1)): l in [0, 1000], r in
+    [1, 100], finite numbers; a ValueError naming what is wrong."""
+    if frame_error is None:
+        return 0.0, 1.0
+    try:
+        ell, ratio = frame_error
+    except (TypeError, ValueError):
+        raise ValueError(f"frame_error must be (correlation length [px], variance ratio), got {frame_error!r}") \
+            from None
+    return (check_real(ell, "frame_error correlation length", 0.0, 1000.0, unit=" px"),
+            check_real(ratio, "frame_error variance ratio", 1.0, 100.0))
+
+
+def effective_samples(n, ell):
+    """Independent samples among n pixels of a square patch whose errors have the Gaussian correlation
+    length ``ell`` [px] (module docstring; NumPy, n an array of counts >= 0; ``ell`` 0: n itself).
+
+    Lags beyond 6 l (rho < 2e-8) are left out of S(a), as in the kernel's :func:`_effective_samples`."""
+    n = np.asarray(n, dtype=np.float64)
+    if not ell > 0.0:
+        return n.copy()
+    a = np.sqrt(n)
+    S = a.copy()
+    W = a.copy()
+    inv = 1.0 / (2.0 * ell * ell)
+    kmax = int(math.ceil(float(a.max()))) if a.size else 0
+    for k in range(1, kmax):
+        t = np.maximum(a - k, 0.0)
+        W += 2.0 * t
+        if k <= 6.0 * ell:
+            S += 2.0 * t * math.exp(-k * k * inv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = np.where(S > 0.0, W / S, 1.0)
+    return np.where(n > 1.0, np.minimum(n, np.maximum(1.0, g * g)), n)
+
+
+@njit(**JIT)
+def _effective_samples(n, ell):
+    """:func:`effective_samples` of one count (numba)."""
+    if not ell > 0.0 or n <= 1.0:
+        return n
+    a = math.sqrt(n)
+    S = a
+    W = a
+    inv = 1.0 / (2.0 * ell * ell)
+    k = 1
+    while k < a:
+        t = a - k
+        W += 2.0 * t
+        if k <= 6.0 * ell:
+            S += 2.0 * t * math.exp(-k * k * inv)
+        k += 1
+    g = W / S
+    return min(n, max(1.0, g * g))
+
+
+@njit(**JIT)
+def _information_scale(n, cap, ell, ratio):
+    """The factor on a frame's sums of n points in a cell: n_eff / (n r), n_eff = the effective samples
+    (:func:`_effective_samples`) capped at ``cap`` (> 0); 1 for n = 0."""
+    if n <= 0.0:
+        return 1.0
+    ne = _effective_samples(n, ell)
+    if cap > 0.0 and ne > cap:
+        ne = cap
+    return ne / (n * ratio)
 
 
 #: Memory of :class:`FusionWorkspace` per map cell [bytes]: PARTIALS x (NACC float64 sums + an int64 stamp).
@@ -331,6 +419,7 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     min_var, max_var, min_h, max_h, change_min, cap = params[1], params[2], params[3], params[4], params[5], params[6]
     spread_z = params[7]
     ratio = params[8]
+    ell, fratio = params[9], params[10]
     h = data[ELEVATION, bi, bj]
     known = not np.isnan(h)
     tau2 = data[SPREAD, bi, bj]
@@ -342,15 +431,16 @@ def _merge_cell(data, bi, bj, W, WZ, N, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, H
     if known and tau2 > 0.0 and data[POINTS, bi, bj] > 0.0:
         # random-effects prior: a mean of n points that scatter by tau^2, m at a time: P >= tau^2 m / n
         v = max(v, tau2 * max(N + Nr, 1.0) / data[POINTS, bi, bj])
-    # information cap: W, WZ *= n_eff / N where N > n_eff
-    if cap > 0.0 and N > cap:
-        s = cap / N
-        W *= s
-        WZ *= s
-    if cap > 0.0 and Nr > cap:
-        s = cap / Nr
-        Wr *= s
-        WZr *= s
+    # information cap and the frame's error: W, WZ *= n_eff / (N r), n_eff = min(effective samples, cap)
+    if cap > 0.0 or ell > 0.0 or fratio != 1.0:
+        s = _information_scale(N, cap, ell, fratio)
+        if s != 1.0:
+            W *= s
+            WZ *= s
+        s = _information_scale(Nr, cap, ell, fratio)
+        if s != 1.0:
+            Wr *= s
+            WZr *= s
     reset = False
     updated = False
     changed = known and Nr >= change_min and Nr > N
@@ -707,7 +797,8 @@ def _cells(geom_n, gx0, gy0, res, x, y):
 
 
 def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params: FusionParams,
-               workspace: FusionWorkspace, nthreads=None, low_margin=None, check=True) -> tuple[int, tuple | None]:
+               workspace: FusionWorkspace, nthreads=None, low_margin=None, check=True,
+               frame_error=None) -> tuple[int, tuple | None]:
     """Fuse one frame into ``data`` (len(LAYERS), n, n) in place (numba).
 
     Parameters
@@ -733,6 +824,8 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
         Check each point's values (default). False only for points whose producer has counted, as it wrote
         them, that none is out of range (:attr:`noise_model.MapPoints.n_outside` == 0): the check is the
         largest single part of the pass, and an unchecked bad value would reach the map.
+    frame_error : (float, float), optional
+        The frame's error correlation length [px] and variance ratio (module docstring); None: none.
 
     Returns
     -------
@@ -749,7 +842,7 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
     """
     n = resolve_threads(nthreads)
     has_h = horizontal_cov is not None
-    pa = params.array(geometry.resolution_m)
+    pa = params.array(geometry.resolution_m, frame_error)
     with threads(n):
         box = accumulate(data, geometry, points_map, height_var, horizontal_cov, pa, workspace, check=check,
                          low_margin=low_margin)
@@ -800,14 +893,14 @@ def touched_box(geometry, points_map) -> tuple | None:
 
 
 def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov, stamp,
-                         params: FusionParams) -> tuple[int, tuple | None]:
+                         params: FusionParams, frame_error=None) -> tuple[int, tuple | None]:
     """NumPy reference of :func:`fuse_frame`: the same checks (:func:`elevmap.map.settings.check_point_values`)
     and update, vectorised with bincount."""
     check_point_values(points_map, height_var, horizontal_cov)
     g = geometry
     n = g.n
-    p = params.array(g.resolution_m)
-    thr, min_var, max_var, min_h, max_h, change_min, cap, spread_z, ratio = p
+    p = params.array(g.resolution_m, frame_error)
+    thr, min_var, max_var, min_h, max_h, change_min, cap, spread_z, ratio, ell, fratio = p
     x, y, z = points_map[:, 0], points_map[:, 1], points_map[:, 2]
     c, inside = _cells(n, g.gx0, g.gy0, g.resolution_m, x, y)
     z, var = z[inside], height_var[inside]
@@ -842,11 +935,17 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
     with np.errstate(invalid="ignore", divide="ignore"):
         if hc is not None:
             Hx, Hxy, Hy = (bc(acc, w * hc[:, k]) / W for k in range(3))
-        if cap > 0:
-            s = np.where(N > cap, cap / np.maximum(N, 1), 1.0)
-            W, WZ = W * s, WZ * s
-            sr = np.where(Nr > cap, cap / np.maximum(Nr, 1), 1.0)
-            Wr, WZr = Wr * sr, WZr * sr
+        if cap > 0 or ell > 0 or fratio != 1.0:
+            # n_eff / (N r), n_eff = min(effective samples, cap) (see _information_scale)
+            for cnt, sums in ((N, "a"), (Nr, "r")):
+                ne = effective_samples(cnt, ell)
+                if cap > 0:
+                    ne = np.minimum(ne, cap)
+                s = np.where(cnt > 0, ne / (np.maximum(cnt, 1) * fratio), 1.0)
+                if sums == "a":
+                    W, WZ = W * s, WZ * s
+                else:
+                    Wr, WZr = Wr * s, WZr * s
         h, v = flat[ELEVATION].copy(), flat[VARIANCE] - tau2_old - excess
         known = ~np.isnan(h)
         npo = flat[POINTS]

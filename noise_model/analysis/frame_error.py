@@ -1,0 +1,117 @@
+"""What one frame's depth error looks like to a map: its size against the modelled sigma, and its correlation.
+
+The axial model is fitted to the per-pixel *temporal* standard deviation of static captures
+(:func:`noise_model.analysis.characterization.axial_noise`). A map built by a moving camera sees more:
+
+* a **static** error pattern (the stereo matcher's fixed response to the projector's texture and the
+  imagers' pixels) is the same in every frame of a static capture, so its temporal standard deviation
+  cannot see it, yet a moving camera sees each terrain cell through other pixels in every frame: to the
+  map it is part of each frame's error. Per-frame error variance = temporal + static;
+* that error is **correlated across the image** over a few pixels (the matcher's window), so the m
+  pixels one frame puts in a map cell are fewer than m independent samples.
+
+Per capture (interior pixels of the target, disparity d = f B / z [px], F frames; the lag covariances
+of :mod:`noise_model.analysis.effect_fits.correlation`, which the gap's direct measurements use too):
+
+    T(h) = lag covariance of d_t - mean_t(d) less each frame's mean over the interior, times F / (F - 1)
+    S(h) = the static part's lag covariance (the temporal mean's residual about its best plane, less the
+           temporal share T(h) / F)
+    C(h) = T(h) + S(h),  ratio = C(0) / T(0),  rho(h) = C(h) / C(0)
+
+and the Gaussian correlation length l of rho(h) = exp(-h^2 / (2 l^2)) over the lags 1-11 px, where the
+lag-1 correlation is at least :data:`MIN_LAG1_CORRELATION` (below, the pixels count as independent:
+l = 0). The frame-wide offset is left out as in the model's own fit (which removes each frame's plane
+motion). The residual is taken about the best plane of the temporal mean, so a capture of fitted
+geometry (no measured distance) is measured the same way: a plane fitted to its own frames absorbs the
+board-scale error, not a pattern a few pixels across.
+
+Pooled over captures (:func:`pooled_frame_error`): the medians of the ratio and of the length (captures
+with no correlation count as 0).
+
+NumPy only; no files.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .diagnosis.direct import _interior
+from .effect_fits.correlation import _fit_gaussian_cov, _lag_cov, _static_lag_cov
+
+__all__ = ["FRAME_ERROR_LAGS", "MIN_LAG1_CORRELATION", "capture_frame_error", "pooled_frame_error"]
+
+#: Lags [px] of the correlation: the span of a map cell's pixels (a 4 cm cell is 2-20 px across).
+FRAME_ERROR_LAGS = (0, 1, 2, 3, 4, 6, 8, 11)
+#: Lag-1 correlation below which a capture's pixels count as independent (length 0). Independent pixels
+#: give |rho(1)| of about 1 / sqrt(pairs) (< 0.01 on a capture's thousands of pixels x frames); the
+#: Gaussian fit on such noise returns any length at all.
+MIN_LAG1_CORRELATION = 0.1
+
+
+def capture_frame_error(c) -> dict:
+    """The per-frame error of one capture (``CaptureData`` with >= 2 frames).
+
+    Returns
+    -------
+    dict
+        ``id``, ``distance_m``, ``temporal_var_d_px2`` (T(0)), ``static_var_d_px2`` (S(0), >= 0),
+        ``ratio`` (C(0) / T(0), >= 1), ``rho`` (rho(h) over :data:`FRAME_ERROR_LAGS`), ``length_px``
+        (0 when not correlated); ``reason`` (str) and NaN values when fewer than 100 interior pixels have
+        data in every frame.
+    """
+    g = c.geometry
+    nan = float("nan")
+    row = {"id": c.id, "distance_m": float(g.distance_m), "temporal_var_d_px2": nan, "static_var_d_px2": nan,
+           "ratio": nan, "rho": [nan] * len(FRAME_ERROR_LAGS), "length_px": nan, "reason": None}
+    F = c.n_frames
+    m, z = _interior(c)
+    fb = g.fb_px_m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = fb / c.depth_m
+        dtrue = fb / z
+    ok = m & np.all(np.isfinite(d), axis=0)
+    if F < 2 or ok.sum() < 100:
+        row["reason"] = f"{int(ok.sum())} interior pixels with data in all {F} frames (need 100 and 2 frames)"
+        return row
+    dev = d[:, ok] - d[:, ok].mean(axis=0)
+    dev -= dev.mean(axis=1)[:, None]
+    x = np.zeros((F,) + ok.shape)
+    x[:, ok] = dev
+    T, _ = _lag_cov(x, ok, FRAME_ERROR_LAGS)
+    T = T * F / (F - 1)
+    S = _static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), FRAME_ERROR_LAGS)
+    S = np.zeros_like(T) if S is None else S[0]
+    if not S[0] > 0.0:                      # no static part measurable: none
+        S = np.zeros_like(T)
+    C = T + S
+    if not (np.all(np.isfinite(C)) and T[0] > 0.0):
+        row["reason"] = "the lag covariances are not finite"
+        return row
+    rho = C / C[0]
+    row.update(temporal_var_d_px2=float(T[0]), static_var_d_px2=float(S[0]), ratio=float(C[0] / T[0]),
+               rho=[float(r) for r in rho])
+    if rho[1] < MIN_LAG1_CORRELATION:
+        row["length_px"] = 0.0
+    else:
+        _, ell = _fit_gaussian_cov(np.array(FRAME_ERROR_LAGS[1:], dtype=float), rho[1:], lmin=0.3, lmax=80.0)
+        row["length_px"] = float(ell)
+    return row
+
+
+def pooled_frame_error(rows) -> dict:
+    """The medians over captures of :func:`capture_frame_error`'s rows that hold a measurement.
+
+    Returns
+    -------
+    dict
+        ``frame_variance_ratio`` (>= 1), ``error_correlation_px`` (0: not correlated), ``n_captures``;
+        None values (and ``n_captures`` 0) when no capture holds one.
+    """
+    good = [r for r in rows if math.isfinite(r.get("ratio", float("nan")))]
+    if not good:
+        return {"frame_variance_ratio": None, "error_correlation_px": None, "n_captures": 0}
+    ratio = float(np.median([r["ratio"] for r in good]))
+    ell = float(np.median([r["length_px"] for r in good]))
+    return {"frame_variance_ratio": max(ratio, 1.0), "error_correlation_px": ell, "n_captures": len(good)}
