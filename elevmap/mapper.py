@@ -174,7 +174,9 @@ class Mapper:
         if cam.valid_margin_px and d.dtype in (np.uint16, np.float32, np.float64):
             d = (drop_valid_margin(d, cam.valid_margin_px, nthreads=self.nthreads) if impl == "numba"
                  else drop_valid_margin_reference(d, cam.valid_margin_px))
-        kwargs = dict(depth_scale=scale, model=cam.model, min_depth_m=cam.min_depth_m, max_depth_m=cam.max_depth_m,
+        # a model that states one frame's whole error (SensorModel.frame_noise) is fused with it
+        model = cam.model.for_map()
+        kwargs = dict(depth_scale=scale, model=model, min_depth_m=cam.min_depth_m, max_depth_m=cam.max_depth_m,
                       bin_at_plane=cam.bin_at_plane)
         if impl == "numba":
             pts = nm.depth_to_map_points(d, cam.K, T_map_cam, pose_cov, workspace=self._workspaces[camera],
@@ -201,8 +203,8 @@ class Mapper:
         # variance_model, whose points are not counted) the map need not check them again
         # the camera's model states its per-frame error (noise_model.SensorModel.frame_error): the map takes
         # each frame's information per cell from it; a variance_model replaces the model's noise altogether
-        frame_error = (cam.model.frame_error(float(cam.K[0, 0]))
-                       if cam.variance_model is None and cam.model.has_frame_error else None)
+        frame_error = (model.frame_error(float(cam.K[0, 0]))
+                       if cam.variance_model is None and model.has_frame_error else None)
         stats = self.map._update_validated(pts.points_map, pts.height_var, pts.horizontal_cov, stamp,
                                            T_map_cam[:3, 3].copy(), impl, check=pts.n_outside != 0,
                                            frame_error=frame_error)

@@ -131,6 +131,11 @@ class SensorModel:
     error_correlation_fx_px : float or None
         Focal length [px] of the stream the correlation length was measured on (it scales with the focal
         length of the frame it is applied to); None when there is no correlation.
+    frame_noise : tuple of floats or None
+        sigma_z of one frame's error (temporal + static) fitted in the model's own family: (c0, c1, c2,
+        c_theta) of the paper's, (s0, s1) of the disparity family. The static part grows with the angle
+        and nearness far more than the temporal one, so a single ``frame_variance_ratio`` misstates both
+        ends; a map uses :meth:`for_map`. None: only the ratio is known.
     """
 
     name: str = "D435 (Ahn et al. 2019)"
@@ -154,6 +159,7 @@ class SensorModel:
     frame_variance_ratio: float = 1.0
     error_correlation_px: float = 0.0
     error_correlation_fx_px: float | None = None
+    frame_noise: tuple | None = None
 
     def __post_init__(self):
         if self.family not in FAMILIES:
@@ -187,6 +193,16 @@ class SensorModel:
         if fx is not None:
             object.__setattr__(self, "error_correlation_fx_px",
                                check_positive_scalar(fx, "error_correlation_fx_px", upper=1e5, unit=" px"))
+        if self.frame_noise is not None:
+            k = 4 if self.family == "paper" else 2
+            try:
+                fn = tuple(float(x) for x in self.frame_noise)
+            except (TypeError, ValueError):
+                fn = ()
+            if len(fn) != k or not all(math.isfinite(x) for x in fn) or (k == 2 and not (fn[0] > 0 and fn[1] >= 0)):
+                raise ValueError(f"sensor model {self.name!r}: frame_noise must be {k} finite numbers of the "
+                                 f"{self.family} family, got {self.frame_noise!r}")
+            object.__setattr__(self, "frame_noise", fn)
 
     # -- the paper's coefficients under their own names -------------------------------------------
     @property
@@ -275,8 +291,19 @@ class SensorModel:
 
     @property
     def has_frame_error(self) -> bool:
-        """True when the model states a per-frame error beyond its per-pixel sigma (ratio > 1 or a correlation)."""
-        return self.frame_variance_ratio != 1.0 or self.error_correlation_px > 0.0
+        """True when the model states a per-frame error beyond its per-pixel sigma (ratio > 1, a correlation
+        or a per-frame sigma_z)."""
+        return self.frame_variance_ratio != 1.0 or self.error_correlation_px > 0.0 or self.frame_noise is not None
+
+    def for_map(self) -> "SensorModel":
+        """The model a map fuses with: sigma_z of one frame's whole error (``frame_noise``) in place of the
+        per-pixel temporal one, with ratio 1 (it is inside that sigma_z) and the same correlation; the model
+        itself when it has no ``frame_noise``."""
+        if self.frame_noise is None:
+            return self
+        if self.family == "paper":
+            return replace(self, axial_coefficients=self.frame_noise, frame_noise=None, frame_variance_ratio=1.0)
+        return replace(self, disparity_sigma_px=self.frame_noise, frame_noise=None, frame_variance_ratio=1.0)
 
     def frame_error(self, fx_px: float) -> tuple[float, float]:
         """(correlation length [px] at a frame of focal length ``fx_px``, per-frame variance ratio) for the map.
@@ -306,17 +333,18 @@ class SensorModel:
         """The model as plain JSON types: :data:`MODEL_FORMAT` for the paper's family (the same keys as
         before the disparity family existed), :data:`MODEL_FORMAT_DISPARITY` with ``family`` and
         ``disparity_sigma_px`` for the disparity family, :data:`MODEL_FORMAT_FRAME_ERROR` (either family)
-        with ``frame_variance_ratio``, ``error_correlation_px`` and ``error_correlation_fx_px`` when the
-        model states a per-frame error. ``frame_fx_px`` (a property of a frame) is not saved."""
+        with ``frame_variance_ratio``, ``error_correlation_px``, ``error_correlation_fx_px`` and
+        ``frame_noise`` (null when not fitted) when the model states a per-frame error. ``frame_fx_px`` (a property of a frame) is not saved."""
         d = asdict(self)
         d["axial_coefficients"] = list(self.axial_coefficients)
         d["hfov_deg"] = [[w, h, v] for (w, h), v in self.hfov_deg.items()]
         del d["frame_fx_px"]
         if self.has_frame_error:
             d["disparity_sigma_px"] = list(self.disparity_sigma_px)
+            d["frame_noise"] = None if self.frame_noise is None else list(self.frame_noise)
             d["format"] = MODEL_FORMAT_FRAME_ERROR
             return d
-        del d["frame_variance_ratio"], d["error_correlation_px"], d["error_correlation_fx_px"]
+        del d["frame_variance_ratio"], d["error_correlation_px"], d["error_correlation_fx_px"], d["frame_noise"]
         if self.family == "paper":
             del d["family"], d["disparity_sigma_px"]
             d["format"] = MODEL_FORMAT
@@ -341,9 +369,11 @@ class SensorModel:
                          "disparity_sigma_px": tuple(float(x) for x in d["disparity_sigma_px"])}
             if d["format"] == MODEL_FORMAT_FRAME_ERROR:
                 fx = d["error_correlation_fx_px"]
+                fn = d.get("frame_noise")
                 extra.update(frame_variance_ratio=float(d["frame_variance_ratio"]),
                              error_correlation_px=float(d["error_correlation_px"]),
-                             error_correlation_fx_px=None if fx is None else float(fx))
+                             error_correlation_fx_px=None if fx is None else float(fx),
+                             frame_noise=None if fn is None else tuple(float(x) for x in fn))
             model = cls(
                 name=str(d["name"]),
                 axial_coefficients=tuple(float(x) for x in d["axial_coefficients"]),

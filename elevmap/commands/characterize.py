@@ -38,7 +38,8 @@ from noise_model.d435 import D435
 from noise_model.reporting import check_names
 
 from ..fileio import check_outputs, json_ready, write_json_atomic
-from .characterize_models import fit_families, measure_frame_error, predict_capture_set, with_frame_error
+from .characterize_models import (fit_families, fit_frame_noise, measure_frame_error, predict_capture_set,
+                                  with_frame_error)
 from .protocol import PROTOCOL  # the recording protocol (also in ``elevmap characterize --help``)
 
 __all__ = ["run_characterize", "characterize_capture", "format_summary", "figure_series", "plane_distance_panels",
@@ -591,7 +592,9 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
             name=f"{cam.get('model') or 'D435'} (characterised from {cs.folder.name}, {better} family)",
             baseline_m=cam.get("baseline_m"), mode=(int(cam["width"]), int(cam["height"]), float(cam["fx"])),
             disparity=None if better == "paper" else (dfit.s0, dfit.s1))
-        model = with_frame_error(model, frame_error)
+        frame_noise, why = fit_frame_noise(records, frame_error, better, cam, MAX_REL_NOISE)
+        report["frame_error"]["frame_noise"], report["frame_error"]["frame_noise_reason"] = frame_noise, why
+        model = with_frame_error(model, frame_error, frame_noise)
         report["family"] = better
         report["model"] = model.to_dict()
         report["model"]["lateral_from"] = {

@@ -19,7 +19,8 @@ import noise_model as nm
 from noise_model.analysis import characterization as ch, family_fit as ff
 from noise_model.d435 import D435
 
-__all__ = ["fit_families", "predict_capture_set", "PREDICTION_FACTOR", "measure_frame_error", "with_frame_error"]
+__all__ = ["fit_families", "predict_capture_set", "PREDICTION_FACTOR", "measure_frame_error", "fit_frame_noise",
+           "with_frame_error"]
 
 #: The fit's comparison grid: the paper's distances and angles.
 _GRID_Z = np.round(np.arange(0.4, 2.1 + 1e-9, 0.1), 2)
@@ -227,9 +228,27 @@ def measure_frame_error(cs, caps) -> dict:
                       "lags 1-11 px where the lag-1 correlation is >= 0.1 (else 0); medians over captures"}
 
 
-def with_frame_error(model, frame_error: dict):
-    """``model`` carrying the pooled per-frame error of :func:`measure_frame_error` (unchanged when none
-    was measured, or when the error is the modelled one: ratio 1 and no correlation)."""
+def fit_frame_noise(records, frame_error: dict, family: str, camera: dict, max_rel_noise: float):
+    """sigma_z of one frame's whole error fitted in ``family``: each measured capture's axial sigma times
+    the square root of its per-frame variance ratio (:func:`measure_frame_error`), fitted as the axial
+    model is (:func:`fit_families`). Returns the family's parameters ((c0, c1, c2, c_theta) or (s0, s1))
+    and None, or None and the reason."""
+    ratio = {r["id"]: r["ratio"] for r in frame_error["captures"]}
+    recs = [dict(r, axial_sigma_m=r["axial_sigma_m"] * math.sqrt(ratio[r["id"]]), axial_bins=None,
+                 notes=dict(r.get("notes") or {}))
+            for r in records if r.get("axial_sigma_m") and r["id"] in ratio]
+    if not recs:
+        return None, "no capture has both an axial sigma and a per-frame error"
+    _, reason, fit, fam = fit_families(recs, camera, max_rel_noise)
+    if family == "paper":
+        return (None, reason) if fit is None else (tuple(float(c) for c in fit.coefficients), None)
+    d = fam["_disparity"]
+    return (None, fam["disparity_reason"] or "the disparity fit failed") if d is None else ((d.s0, d.s1), None)
+
+
+def with_frame_error(model, frame_error: dict, frame_noise=None):
+    """``model`` carrying the pooled per-frame error of :func:`measure_frame_error` and the per-frame sigma_z
+    ``frame_noise`` (:func:`fit_frame_noise`) (unchanged when none was measured)."""
     from dataclasses import replace
 
     p = frame_error["pooled"]
@@ -237,4 +256,4 @@ def with_frame_error(model, frame_error: dict):
         return model
     ell = float(p["error_correlation_px"])
     return replace(model, frame_variance_ratio=float(p["frame_variance_ratio"]), error_correlation_px=ell,
-                   error_correlation_fx_px=frame_error["fx_px"] if ell > 0.0 else None)
+                   error_correlation_fx_px=frame_error["fx_px"] if ell > 0.0 else None, frame_noise=frame_noise)

@@ -34,16 +34,24 @@ NumPy only; no files.
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 
 from .diagnosis.direct import _interior
 from .effect_fits.correlation import _fit_gaussian_cov, _lag_cov, _static_lag_cov
 
-__all__ = ["FRAME_ERROR_LAGS", "MIN_LAG1_CORRELATION", "capture_frame_error", "pooled_frame_error"]
+__all__ = ["FRAME_ERROR_LAGS", "MIN_LAG1_CORRELATION", "MIN_FRAMES", "MAX_RATIO", "capture_frame_error",
+           "pooled_frame_error"]
 
 #: Lags [px] of the correlation: the span of a map cell's pixels (a 4 cm cell is 2-20 px across).
 FRAME_ERROR_LAGS = (0, 1, 2, 3, 4, 6, 8, 11)
+#: Fewest frames a capture needs: the temporal lag covariance of 2-4 frames is too rough to divide by (a
+#: recording whose frames repeat has none at all).
+MIN_FRAMES = 5
+#: Largest per-frame over temporal variance ratio taken as a measurement: beyond, the "static" part is not
+#: a noise pattern but the target itself (not a plane, something in front of it).
+MAX_RATIO = 100.0
 #: Lag-1 correlation below which a capture's pixels count as independent (length 0). Independent pixels
 #: give |rho(1)| of about 1 / sqrt(pairs) (< 0.01 on a capture's thousands of pixels x frames); the
 #: Gaussian fit on such noise returns any length at all.
@@ -51,7 +59,7 @@ MIN_LAG1_CORRELATION = 0.1
 
 
 def capture_frame_error(c) -> dict:
-    """The per-frame error of one capture (``CaptureData`` with >= 2 frames).
+    """The per-frame error of one capture (``CaptureData``; measured with >= :data:`MIN_FRAMES` frames).
 
     Returns
     -------
@@ -59,7 +67,8 @@ def capture_frame_error(c) -> dict:
         ``id``, ``distance_m``, ``temporal_var_d_px2`` (T(0)), ``static_var_d_px2`` (S(0), >= 0),
         ``ratio`` (C(0) / T(0), >= 1), ``rho`` (rho(h) over :data:`FRAME_ERROR_LAGS`), ``length_px``
         (0 when not correlated); ``reason`` (str) and NaN values when fewer than 100 interior pixels have
-        data in every frame.
+        data in every frame, the capture has fewer than :data:`MIN_FRAMES` frames or the ratio exceeds
+        :data:`MAX_RATIO`.
     """
     g = c.geometry
     nan = float("nan")
@@ -68,12 +77,18 @@ def capture_frame_error(c) -> dict:
     F = c.n_frames
     m, z = _interior(c)
     fb = g.fb_px_m
+    if m.any():                 # the interior's bounding box: the lag sums need nothing outside it
+        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        m, z = m[box], z[box]
+        c = SimpleNamespace(n_frames=F, depth_m=c.depth_m[(slice(None),) + box])
     with np.errstate(divide="ignore", invalid="ignore"):
         d = fb / c.depth_m
         dtrue = fb / z
     ok = m & np.all(np.isfinite(d), axis=0)
-    if F < 2 or ok.sum() < 100:
-        row["reason"] = f"{int(ok.sum())} interior pixels with data in all {F} frames (need 100 and 2 frames)"
+    if F < MIN_FRAMES or ok.sum() < 100:
+        row["reason"] = (f"{int(ok.sum())} interior pixels with data in all {F} frames (need 100 and "
+                         f"{MIN_FRAMES} frames)")
         return row
     dev = d[:, ok] - d[:, ok].mean(axis=0)
     dev -= dev.mean(axis=1)[:, None]
@@ -88,6 +103,10 @@ def capture_frame_error(c) -> dict:
     C = T + S
     if not (np.all(np.isfinite(C)) and T[0] > 0.0):
         row["reason"] = "the lag covariances are not finite"
+        return row
+    if C[0] / T[0] > MAX_RATIO:
+        row["reason"] = (f"the error about the target's plane is {C[0] / T[0]:.0f} times its temporal variance: "
+                         "the target is not the plane the capture names")
         return row
     rho = C / C[0]
     row.update(temporal_var_d_px2=float(T[0]), static_var_d_px2=float(S[0]), ratio=float(C[0] / T[0]),

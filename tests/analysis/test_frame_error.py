@@ -61,3 +61,10 @@ def test_pooled_takes_the_medians_and_says_when_nothing_was_measured():
             {"ratio": float("nan"), "length_px": float("nan")}]
     assert pooled_frame_error(rows) == {"frame_variance_ratio": 2.0, "error_correlation_px": 3.0, "n_captures": 3}
     assert pooled_frame_error(rows[3:])["n_captures"] == 0
+
+
+def test_too_few_frames_or_a_target_that_is_not_its_plane_give_a_reason(rng):
+    row = capture_frame_error(_capture(rng, 0.05, 0.0, 0.0, frames=3))
+    assert "frames" in row["reason"] and math.isnan(row["ratio"])
+    row = capture_frame_error(_capture(rng, 0.001, 0.5, 4.0))            # a 500x "static" part: not noise
+    assert "not the plane" in row["reason"] and math.isnan(row["ratio"])

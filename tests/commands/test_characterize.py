@@ -275,6 +275,15 @@ def test_paper_grid_gives_back_the_papers_model(paper_grid_set, tmp_path):
     held = rep["heldout"]["families"]
     assert held["paper"]["rms_log_error_common"] < held["disparity"]["rms_log_error_common"]
     assert model.sigma_L == rep["sigma_L_m"] and model.sigma_R == rep["sigma_R_m"]
+    # the reference simulation's pixels are independent and have no static error: the per-frame error is
+    # the temporal one (ratio 1 within the static estimate's noise, no correlation), and the map's sigma_z
+    # is the temporal fit's
+    fe = doc["frame_error"]
+    assert fe["pooled"]["n_captures"] >= 100 and fe["pooled"]["error_correlation_px"] == 0.0
+    assert fe["pooled"]["frame_variance_ratio"] == pytest.approx(1.0, abs=0.01)
+    assert model.error_correlation_px == 0.0 and model.frame_noise is not None
+    assert nm.axial_sigma(1.0, 0.5, model=model.for_map()) == pytest.approx(nm.axial_sigma(1.0, 0.5, model=model),
+                                                                             rel=0.02)
 
 
 def test_paper_grid_with_a_fifth_of_the_captures_removed(paper_grid_set, tmp_path):
@@ -423,3 +432,38 @@ def test_realsense_recordings_at_640x480_are_characterised_like_npy(tmp_path, rn
         assert c["axial_sigma_m"] == pytest.approx(c["paper_sigma_z_m"], rel=0.05)
         assert c["lateral_left_m"] > 0.005 and c["lateral_right_m"] > 0.005
     assert rep["fit"]["vs_paper"]["max_rel_diff_where_paper_below_0.05m"] < 0.10
+
+
+def test_a_static_error_pattern_is_measured_and_carried_by_the_model_file(tmp_path):
+    """A static field of one temporal sigma over l = 4 px added to simulated captures: the report's per-frame
+    variance ratio is about 2, its correlation length about 4 px, and the model file (/3) carries both and
+    a per-frame sigma_z about sqrt(2) times the temporal one."""
+    from scipy import ndimage
+
+    from elevmap.commands.characterize import run_characterize
+    from elevmap.commands.simulate import simulate_capture_set
+    from elevmap.sources.captures import write_capture_set
+
+    grid = [(0.6, 0.0), (0.8, 15.0), (1.0, 0.0), (1.2, 30.0), (1.4, 15.0), (1.0, 45.0)]
+    sim = simulate_capture_set(tmp_path / "sim", grid, n_frames=8, seed=4, show_progress=False)
+    rng = np.random.default_rng(8)
+    caps = []
+    for c in sim.captures:
+        units = np.load(c.path)
+        z = np.where(units > 0, units * 0.001, np.nan)
+        field = ndimage.gaussian_filter(rng.standard_normal(z.shape[1:]), 4.0 / math.sqrt(2.0))
+        sig = nm.axial_sigma(c.distance_m, math.radians(c.yaw_deg))
+        z = z + sig * field / field.std()
+        caps.append((c.to_dict(), np.where(np.isfinite(z), np.round(z / 0.001), 0).astype(np.uint16)))
+    write_capture_set(tmp_path, sim.camera, caps)
+    rep = run_characterize(tmp_path, json_path=tmp_path / "r.json", show_progress=False)
+    fe = rep["frame_error"]["pooled"]
+    assert fe["n_captures"] == 6
+    assert fe["frame_variance_ratio"] == pytest.approx(2.0, rel=0.15)
+    assert fe["error_correlation_px"] == pytest.approx(4.0, rel=0.2)
+    doc = json.loads((tmp_path / "r.model.json").read_text())
+    assert doc["format"] == "elevmap-sensor-model/3"
+    model = nm.SensorModel.load(tmp_path / "r.model.json")
+    assert model.error_correlation_fx_px == pytest.approx(sim.K[0, 0])
+    ratio = nm.axial_sigma(1.0, 0.3, model=model.for_map()) / nm.axial_sigma(1.0, 0.3, model=model)
+    assert ratio == pytest.approx(math.sqrt(2.0), rel=0.15)

@@ -126,3 +126,23 @@ def test_the_mapper_takes_the_frame_error_from_the_cameras_model():
     assert np.array_equal(out["frame"][0], ref.data, equal_nan=True)
     assert np.isfinite(out["plain"][0][0]).sum() > 50
     assert not np.array_equal(out["frame"][0], out["plain"][0], equal_nan=True)
+
+
+def test_a_model_with_a_per_frame_sigma_maps_with_it():
+    """A camera model with ``frame_noise`` maps as the camera whose model is its ``for_map()``."""
+    from dataclasses import replace
+
+    K = np.array([[212.0, 0, 211.5], [0, 212.0, 119.5], [0, 0, 1]])
+    model = replace(nm.D435.with_coefficients((3.4e-4, -6.6e-4, 3.3e-3, 5.8e-5)), frame_variance_ratio=2.2,
+                    error_correlation_px=4.0, error_correlation_fx_px=212.0, frame_noise=(3e-4, 4e-4, 3.5e-3, 3e-4))
+    depth = np.full((240, 424), 1500, dtype=np.uint16)
+    T = np.eye(4)
+    T[:3, :3] = [[0, -0.5, 0.8660254037844386], [-1, 0, 0], [0, -0.8660254037844386, -0.5]]
+    T[2, 3] = 0.6
+    maps = []
+    for mdl in (model, model.for_map(), nm.D435.with_coefficients(model.axial_coefficients)):
+        mp = Mapper(ElevationMap(4.0, 0.04), [Camera("c", K, 424, 240, model=mdl, valid_margin_px=0)], nthreads=1)
+        mp.integrate("c", depth, T_map_cam=T)
+        maps.append(mp.map.data)
+    assert np.array_equal(maps[0], maps[1], equal_nan=True)
+    assert not np.array_equal(maps[0], maps[2], equal_nan=True)

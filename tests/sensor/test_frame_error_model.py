@@ -2,6 +2,8 @@
 
 import json
 
+import numpy as np
+
 import pytest
 
 import noise_model as nm
@@ -56,3 +58,25 @@ def test_a_v3_file_missing_a_key_names_it():
     del d["error_correlation_px"]
     with pytest.raises(ValueError, match="error_correlation_px"):
         nm.SensorModel.from_dict(d)
+
+
+def test_the_per_frame_sigma_replaces_the_temporal_one_for_the_map(tmp_path):
+    from dataclasses import replace
+
+    paper = replace(nm.D435.with_coefficients((3.4e-4, -6.6e-4, 3.3e-3, 5.8e-5)), frame_variance_ratio=2.2,
+                    error_correlation_px=4.0, error_correlation_fx_px=212.0, frame_noise=(3e-4, 4e-4, 3.5e-3, 3e-4))
+    m = paper.for_map()
+    assert m.axial_coefficients == (3e-4, 4e-4, 3.5e-3, 3e-4) and m.frame_noise is None
+    assert m.frame_error(212.0) == (4.0, 1.0)                  # the ratio is inside the per-frame sigma
+    assert nm.axial_sigma(1.0, 0.5, model=m) > nm.axial_sigma(1.0, 0.5, model=paper)
+    paper.save(tmp_path / "p.json")
+    assert nm.SensorModel.load(tmp_path / "p.json") == paper
+    disp = replace(nm.D435.with_disparity(0.04), frame_variance_ratio=2.0, frame_noise=(0.06, 0.01))
+    assert disp.for_map().disparity_sigma_px == (0.06, 0.01) and disp.for_map().frame_error(100.0) == (0.0, 1.0)
+    assert nm.SensorModel.from_dict(disp.to_dict()) == disp
+    assert nm.D435.for_map() is nm.D435
+    for bad in [(1e-3, 1e-3), (0.0, -1.0, 0.0, 0.0, 0.0), (np.nan, 0, 0, 0)]:
+        with pytest.raises(ValueError, match="frame_noise"):
+            replace(nm.D435, frame_noise=bad)
+    with pytest.raises(ValueError, match="frame_noise"):
+        replace(nm.D435.with_disparity(0.04), frame_noise=(-0.01, 0.0))
