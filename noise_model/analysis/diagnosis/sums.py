@@ -371,6 +371,10 @@ def _frame_sums_kernel(z, zt, inv_sig, geom, cell, bucket, phase_k, edges, lags,
     nblk = 16
     Dp = np.zeros((nblk, B, F, F))
     Np = np.zeros((nblk, B, F, F))
+    # pixels with a core value in every frame (most of them) pair every frame with every other: they are
+    # counted per bucket (nfull) instead of adding 1 to each of their pairs, and their D loop needs no
+    # index (the same additions in the same order, so D is the same; counts are exact integers)
+    nfull = np.zeros((nblk, B))
     for bk in prange(nblk):
         y0 = (H * bk) // nblk
         y1 = (H * (bk + 1)) // nblk
@@ -393,8 +397,17 @@ def _frame_sums_kernel(z, zt, inv_sig, geom, cell, bucket, phase_k, edges, lags,
                             n += 1
                 if n < 2:
                     continue
-                Dc = Dp[bk, bucket[y, x]]
-                Nc = Np[bk, bucket[y, x]]
+                k = bucket[y, x]
+                Dc = Dp[bk, k]
+                if n == F:
+                    nfull[bk, k] += 1.0
+                    for a in range(F):
+                        ra = rr[a]
+                        for b in range(a + 1, F):
+                            dd = ra - rr[b]
+                            Dc[a, b] += dd * dd
+                    continue
+                Nc = Np[bk, k]
                 for a in range(n):
                     fa = idx[a]
                     ra = rr[a]
@@ -408,8 +421,8 @@ def _frame_sums_kernel(z, zt, inv_sig, geom, cell, bucket, phase_k, edges, lags,
                 for e in range(f + 1, F):
                     D[k, f, e] += Dp[bk, k, f, e]
                     D[k, e, f] += Dp[bk, k, f, e]
-                    N[k, f, e] += Np[bk, k, f, e]
-                    N[k, e, f] += Np[bk, k, f, e]
+                    N[k, f, e] += Np[bk, k, f, e] + nfull[bk, k]
+                    N[k, e, f] += Np[bk, k, f, e] + nfull[bk, k]
 
 
 def _bucket_to_strata(x: np.ndarray, axis: int) -> np.ndarray:

@@ -21,16 +21,28 @@ from .spec import FitSpec
 # ---- lag covariances ------------------------------------------------------------------------------
 def _lag_cov(x, mask, lags):
     """Mean of x_p x_{p+h} over frames and over pixel pairs h apart (rows and columns) both in mask and
-    finite in x (F, H, W); returns (cov (len(lags),), n_pairs)."""
-    xf = np.where(np.isfinite(x) & mask[None], x, 0.0)
-    vf = (np.isfinite(x) & mask[None]).astype(np.float64)
+    finite in x (F, H, W); returns (cov (len(lags),), n_pairs).
+
+    The products are summed by ``einsum`` on shifted views (no product image is made), and when every
+    frame has the same valid pixels the pairs are counted once on one frame and multiplied by F.
+    """
+    valid = np.isfinite(x) & mask[None]
+    xf = np.where(valid, x, 0.0)
+    F = x.shape[0]
+    if F == 1 or bool((valid == valid[:1]).all()):
+        vf, mult = valid[:1].astype(np.float64), float(F)
+    else:
+        vf, mult = valid.astype(np.float64), 1.0
     cov, npairs = [], []
     for h in lags:
         if h == 0:
-            s, n = float(np.sum(xf * xf)), float(np.sum(vf))
+            s = float(np.einsum("ijk,ijk->", xf, xf))
+            n = mult * float(np.einsum("ijk->", vf))
         else:
-            s = float(np.sum(xf[:, :, h:] * xf[:, :, :-h])) + float(np.sum(xf[:, h:, :] * xf[:, :-h, :]))
-            n = float(np.sum(vf[:, :, h:] * vf[:, :, :-h])) + float(np.sum(vf[:, h:, :] * vf[:, :-h, :]))
+            s = float(np.einsum("ijk,ijk->", xf[:, :, h:], xf[:, :, :-h]))
+            s += float(np.einsum("ijk,ijk->", xf[:, h:, :], xf[:, :-h, :]))
+            n = float(np.einsum("ijk,ijk->", vf[:, :, h:], vf[:, :, :-h]))
+            n = mult * (n + float(np.einsum("ijk,ijk->", vf[:, h:, :], vf[:, :-h, :])))
         cov.append(s / n if n > 0 else np.nan)
         npairs.append(n)
     return np.array(cov), np.array(npairs)
@@ -105,10 +117,10 @@ def _spatial_standardised_residual(c, m, sig, fb):
     pixels, z_plane = f B / (the frame's best disparity plane, :func:`_plane_residual`), values more
     than 8 sigma from the median left out (0, weight 0); returns (x, w) float32 (1, H, W) or None."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        pr = _plane_residual(fb / c.depth_m[0], m)
+        pr = _plane_residual(fb / c.frame_m(0), m)
     if pr is None:
         return None
-    z = c.depth_m[0]
+    z = c.frame_m(0)
     with np.errstate(divide="ignore", invalid="ignore"):
         x = (z - fb / pr[1]) / sig
         keep = m & np.isfinite(x)
@@ -148,8 +160,8 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
         z, th, _, fb = _nominal(g, model)
         if np.nanmax(th) > math.radians(60.5):
             continue
-        m = (_interior(g, model, _roi(rois, g)) & np.all(np.isfinite(c.depth_m), axis=0)
-             & np.all(np.isfinite(b.depth_m), axis=0))
+        m = (_interior(g, model, _roi(rois, g)) & c.has_data().all(axis=0)
+             & b.has_data().all(axis=0))
         if m.sum() < 100:
             continue
         sig = np.where(m, axial_sigma_unchecked(np.where(m, z, 1.0), np.where(m, th, 0.0),
@@ -210,7 +222,7 @@ def _single_frame_residual(c, m, fb):
     """One frame's disparity minus its best plane (:func:`_plane_residual`), values more than 8 robust
     sigmas from 0 (outliers) set to NaN; None when fewer than 50 pixels have data."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        pr = _plane_residual(fb / c.depth_m[0], m)
+        pr = _plane_residual(fb / c.frame_m(0), m)
     if pr is None:
         return None
     r = pr[0]

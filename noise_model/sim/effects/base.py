@@ -189,6 +189,11 @@ def _to_disparity(fb: float, z):
         return np.where(_valid(z), fb / z, np.nan)
 
 
+#: Kernel radius [px] above which :func:`gaussian_random_field` filters by FFT (where the FFT is the
+#: faster of the two at 424 x 240).
+_FFT_RADIUS_PX = 24
+
+
 def gaussian_random_field(shape, length_px: float, rng: np.random.Generator) -> np.ndarray:
     """A stationary Gaussian random field with unit variance and Gaussian correlation.
 
@@ -198,6 +203,11 @@ def gaussian_random_field(shape, length_px: float, rng: np.random.Generator) -> 
     apart is rho(h) = exp(-h^2 / (2 length_px^2)) (up to the truncation and the sampling of the
     kernel: within 0.002 for length_px >= 1.2, 0.02 at 1 px). No wrap-around: the field is stationary
     up to its borders.
+
+    Kernels longer than :data:`_FFT_RADIUS_PX` taps either side are applied by FFT
+    (``scipy.signal.fftconvolve``, 'valid' part), shorter ones directly (``scipy.ndimage.correlate1d``):
+    the same filter on the same draws, equal up to rounding, and the FFT's cost does not grow with the
+    kernel's length (the direct filter's does, linearly).
 
     Parameters
     ----------
@@ -225,9 +235,14 @@ def gaussian_random_field(shape, length_px: float, rng: np.random.Generator) -> 
     x = np.arange(-r, r + 1, dtype=np.float64)
     k = np.exp(-0.5 * (x / s) ** 2)
     k /= math.sqrt(float(np.sum(k * k)))
+    w = rng.standard_normal((H + 2 * r, W + 2 * r))
+    if r > _FFT_RADIUS_PX:
+        from scipy.signal import fftconvolve
+
+        rows = fftconvolve(w, k[None, :], mode="valid", axes=1)        # k is symmetric: convolution = correlation
+        return fftconvolve(rows, k[:, None], mode="valid", axes=0)
     from scipy.ndimage import correlate1d
 
-    w = rng.standard_normal((H + 2 * r, W + 2 * r))
     rows = correlate1d(w, k, axis=1, mode="constant")[:, r:r + W]
     return correlate1d(rows, k, axis=0, mode="constant")[r:r + H, :]
 
