@@ -30,7 +30,6 @@ Effect context
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -41,6 +40,7 @@ from ..sim.targets import (
 )
 
 __all__ = ["CaptureGeometry", "CaptureData", "capture_geometry", "simulate_capture", "check_captures", "GEOMETRIES",
+           "units_to_depth_m",
            "REGION_NONE", "REGION_INTERIOR", "REGION_EDGE_LEFT", "REGION_EDGE_RIGHT", "REGION_LEFT_BAND",
            "REGION_BACKGROUND", "REGION_NAMES", "LEFT_BAND_MARGIN_PX_424", "EDGE_PX_424", "LATERAL_EDGE_SIGMAS"]
 
@@ -93,14 +93,18 @@ def capture_geometry(camera: Mapping, capture: Mapping) -> CaptureGeometry:
     return CaptureGeometry.from_capture_set_entry(camera, capture)
 
 
-@dataclass
 class CaptureData:
     """A capture's geometry and frames, with its mask and how its geometry is known.
 
-    Attributes
+    Frames made from depth units (:meth:`from_units`: recordings, simulations) are kept as those units
+    (uint16 as recorded: a quarter of the memory of metres in float64, and exact); :attr:`depth_m`
+    converts them to metres on each access, :meth:`frame_m` and :meth:`pixels_m` only the part asked for.
+    Frames given in metres are kept as float64.
+
+    Parameters
     ----------
     geometry : CaptureGeometry
-    depth_m : ndarray, shape (F, H, W), float64
+    depth_m : ndarray, shape (F, H, W), float
         Metric z-depth [m]; NaN = no data.
     mask : ndarray of bool, shape (H, W), or None
         True where a pixel sees the target (captures.json's ``mask``); None = every pixel the target
@@ -109,18 +113,23 @@ class CaptureData:
         captures.json's ``geometry``: "measured" (default) or "fitted" (:data:`GEOMETRIES`). With fitted
         geometry, statistics against the true distance (bias, scale, absolute error) are not computed:
         the plane fit absorbs them.
+
+    Attributes
+    ----------
+    geometry, mask, geometry_origin
+        As given (checked).
+    depth_m : ndarray, shape (F, H, W), float64
+        Metric z-depth [m]; NaN = no data (a new array on each access when the frames are units).
     """
 
-    geometry: CaptureGeometry
-    depth_m: np.ndarray
-    mask: np.ndarray | None = None
-    geometry_origin: str = "measured"
+    __slots__ = ("geometry", "mask", "geometry_origin", "_depth", "_units")
 
-    def __post_init__(self):
-        if not isinstance(self.geometry, CaptureGeometry):
-            raise ValueError(f"geometry must be a CaptureGeometry, got {type(self.geometry).__name__}")
-        g = self.geometry
-        d = np.asarray(self.depth_m)
+    def __init__(self, geometry: CaptureGeometry, depth_m, mask: np.ndarray | None = None,
+                 geometry_origin: str = "measured"):
+        if not isinstance(geometry, CaptureGeometry):
+            raise ValueError(f"geometry must be a CaptureGeometry, got {type(geometry).__name__}")
+        g = geometry
+        d = np.asarray(depth_m)
         if d.ndim != 3 or d.shape[1:] != (g.height, g.width) or d.shape[0] < 1:
             raise ValueError(f"{g.id}: depth_m must have shape (frames >= 1, {g.height}, {g.width}), got {d.shape}")
         if not np.issubdtype(d.dtype, np.floating):
@@ -134,17 +143,65 @@ class CaptureData:
             top = np.nanmax(d) if np.isfinite(d).any() else 0.0
         if top > 100.0:
             raise ValueError(f"{g.id}: depth_m holds values up to {top:.1f}: depth must be in metres")
-        self.depth_m = d
-        if self.geometry_origin not in GEOMETRIES:
-            raise ValueError(f"{g.id}: geometry_origin must be 'measured' or 'fitted', got {self.geometry_origin!r}")
-        if self.mask is not None:
-            m = np.asarray(self.mask)
+        self._set(g, d, None, mask, geometry_origin)
+
+    def _set(self, g, depth, units, mask, geometry_origin) -> None:
+        """Store the frames (metres or units, already checked) and check the mask and the origin."""
+        self.geometry, self._depth, self._units = g, depth, units
+        if geometry_origin not in GEOMETRIES:
+            raise ValueError(f"{g.id}: geometry_origin must be 'measured' or 'fitted', got {geometry_origin!r}")
+        self.geometry_origin = geometry_origin
+        if mask is not None:
+            m = np.asarray(mask)
             if m.dtype != bool or m.shape != (g.height, g.width):
                 raise ValueError(f"{g.id}: mask must be a boolean image of shape ({g.height}, {g.width}), "
                                  f"got {m.dtype} {m.shape}")
             if not m.any():
                 raise ValueError(f"{g.id}: mask selects no pixel")
-            self.mask = m
+            mask = m
+        self.mask = mask
+
+    def __repr__(self) -> str:
+        return (f"CaptureData({self.id!r}, {self.n_frames} frames {self.geometry.width}x{self.geometry.height}, "
+                f"mask={'none' if self.mask is None else int(self.mask.sum())} px, {self.geometry_origin})")
+
+    # -- the frames ---------------------------------------------------------------------------
+    @property
+    def depth_m(self) -> np.ndarray:
+        """Metric z-depth (F, H, W) float64 [m], NaN = no data."""
+        if self._units is not None:
+            return units_to_depth_m(self._units, self.geometry.depth_scale)
+        return self._depth
+
+    def frame_m(self, index: int) -> np.ndarray:
+        """Frame ``index``'s metric z-depth (H, W) float64 [m], NaN = no data."""
+        if self._units is not None:
+            return units_to_depth_m(self._units[index], self.geometry.depth_scale)
+        return self._depth[index]
+
+    def pixels_m(self, mask: np.ndarray) -> np.ndarray:
+        """Every frame's metric z-depth at the pixels of ``mask`` (bool (H, W)): (F, mask.sum()) float64 [m]."""
+        if self._units is not None:
+            return units_to_depth_m(self._units[:, mask], self.geometry.depth_scale)
+        return self._depth[:, mask]
+
+    def has_data(self) -> np.ndarray:
+        """bool (F, H, W): True where a frame has a depth."""
+        if self._units is not None:
+            return self._units != 0
+        return np.isfinite(self._depth)
+
+    def with_geometry(self, geometry: CaptureGeometry, mask: np.ndarray | None) -> "CaptureData":
+        """The same frames (shared, not copied) under another geometry of the same camera and size, e.g. a
+        capture's pixels in one depth band as a capture of their own, with ``mask``."""
+        g0 = self.geometry
+        if not isinstance(geometry, CaptureGeometry) or (geometry.height, geometry.width) != (g0.height, g0.width) \
+                or geometry.depth_scale != g0.depth_scale:
+            raise ValueError(f"{self.id}: the new geometry must be a CaptureGeometry of the same image size and "
+                             "depth scale")
+        out = CaptureData.__new__(CaptureData)
+        out._set(geometry, self._depth, self._units, mask, self.geometry_origin)
+        return out
 
     @property
     def is_fitted(self) -> bool:
@@ -171,7 +228,7 @@ class CaptureData:
 
     @property
     def n_frames(self) -> int:
-        return int(self.depth_m.shape[0])
+        return int((self._units if self._units is not None else self._depth).shape[0])
 
     @classmethod
     def from_capture_entry(cls, camera: Mapping, capture: Mapping, depth_units: np.ndarray,
@@ -208,9 +265,31 @@ class CaptureData:
                              f"{geometry.width}), got {np.asarray(depth_units).shape}")
         if a.size and int(a.min()) < 0:
             raise ValueError(f"{geometry.id}: depth units must be >= 0, got {int(a.min())}")
-        d = a.astype(np.float64) * geometry.depth_scale
-        d[a == 0] = np.nan
-        return cls(geometry, d, mask, geometry_origin)
+        if a.shape[0] < 1:
+            raise ValueError(f"{geometry.id}: depth units have no frames")
+        top = int(a.max()) * geometry.depth_scale if a.size else 0.0
+        if top > 100.0:
+            raise ValueError(f"{geometry.id}: depth units reach {top:.1f} m: depth must be in metres (check "
+                             "depth_scale)")
+        if int(a.max()) <= 65535 and a.dtype != np.uint16:
+            a = a.astype(np.uint16)
+        units = np.array(a, copy=True)                       # the caller's array may change later
+        units.flags.writeable = False
+        out = cls.__new__(cls)
+        out._set(geometry, None, units, mask, geometry_origin)
+        return out
+
+
+def units_to_depth_m(depth_units: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Metric depth (same shape, float64) [m] of depth units: units * depth_scale, NaN where 0 (no data).
+
+    No checks: ``depth_units`` is a non-negative integer array, ``depth_scale`` [m/unit] a positive float
+    (:meth:`CaptureData.from_units` checks them; a simulation's uint16 frames are so by construction).
+    """
+    a = np.asarray(depth_units)
+    d = a.astype(np.float64) * depth_scale
+    d[a == 0] = np.nan
+    return d
 
 
 

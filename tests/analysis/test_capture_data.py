@@ -1,6 +1,7 @@
 """noise_model.analysis.capture_data: capture geometry from captures.json entries, regions, frames, and the
 reference simulation of a capture (draw for draw the frames of noise_model.sim.targets.simulate_target_frames)."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -116,6 +117,31 @@ def test_capture_data_from_units():
         CaptureData(g, units.astype(float) + 1.0)
     with pytest.raises(ValueError, match="<= 0"):
         CaptureData(g, np.zeros((1, 240, 424)))
+    with pytest.raises(ValueError, match="metres"):
+        CaptureData.from_units(g, np.full((1, 240, 424), 200_000, dtype=np.int64))     # 200 m: not millimetres
+
+
+def test_capture_data_keeps_units_and_gives_the_same_metres():
+    """Frames from units are kept as units; every accessor gives what the metres in float64 would."""
+    g = CaptureGeometry.from_capture_set_entry(CAMERA, WALL)
+    rng = np.random.default_rng(4)
+    units = rng.integers(0, 3000, (3, 240, 424)).astype(np.uint16)
+    metres = np.where(units > 0, units.astype(np.float64) * g.depth_scale, np.nan)
+    c = CaptureData.from_units(g, units)
+    units[:] = 7                                                   # the caller's array changes afterwards
+    m = rng.random((240, 424)) < 0.3
+    np.testing.assert_array_equal(c.depth_m, metres)
+    np.testing.assert_array_equal(c.frame_m(2), metres[2])
+    np.testing.assert_array_equal(c.pixels_m(m), metres[:, m])
+    np.testing.assert_array_equal(c.has_data(), np.isfinite(metres))
+    f = CaptureData(g, metres)                                     # the same frames given in metres
+    np.testing.assert_array_equal(f.pixels_m(m), c.pixels_m(m))
+    np.testing.assert_array_equal(f.has_data(), c.has_data())
+    part = c.with_geometry(dataclasses.replace(g, id="part"), m)
+    assert part.id == "part" and part.mask is not None and part.mask.sum() == m.sum() and part.n_frames == 3
+    np.testing.assert_array_equal(part.depth_m, metres)
+    with pytest.raises(ValueError, match="same image size"):
+        c.with_geometry(CaptureGeometry.from_capture_set_entry(dict(CAMERA, width=212, height=120), WALL), None)
 
 
 @pytest.mark.parametrize("capture", [WALL, BOARD, dict(WALL, target=dict(WALL["target"], yaw_deg=45.0))])

@@ -510,7 +510,7 @@ def test_split_by_depth_gives_one_capture_per_band():
                                      if ((z >= lo) & (z < hi)).sum() >= 50]
     for p in parts:
         lo, hi = (float(x) for x in p.id.split("_z")[1].split("-"))
-        assert parents[p.id] == "floor" and p.is_fitted and p.depth_m is c.depth_m
+        assert parents[p.id] == "floor" and p.is_fitted and np.array_equal(p.depth_m, c.depth_m, equal_nan=True)
         assert np.array_equal(p.mask, (z >= lo) & (z < hi))
         assert lo <= dist[p.id] < hi and ang[p.id] == pytest.approx(np.degrees(np.median(th[p.mask])))
     with pytest.raises(ValueError, match="increasing"):

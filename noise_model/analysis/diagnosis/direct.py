@@ -112,7 +112,7 @@ def capture_measurements(c) -> dict:
     if g.kind == "wall" and row["angle_deg"] <= 30.0 + 1e-6:
         reg = g.regions()
         margins = []
-        valid = np.mean(np.isfinite(c.depth_m), axis=0) >= 0.5
+        valid = np.mean(c.has_data(), axis=0) >= 0.5
         for v in range(g.height):
             surf = np.isfinite(z[v]) & ((reg[v] == REGION_INTERIOR) | (reg[v] == REGION_LEFT_BAND))
             if c.mask is not None:

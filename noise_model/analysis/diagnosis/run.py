@@ -33,14 +33,14 @@ import dataclasses
 import math
 import time
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
 from ...d435 import D435, SensorModel
 from ...reporting import check_names, json_ready
 from ...sim.effects import EFFECTS, ORDER, canonical_order, draw_params, make_effect
-from ..capture_data import CaptureData, CaptureGeometry, check_captures, simulate_capture
+from ..capture_data import CaptureData, CaptureGeometry, check_captures, simulate_capture, units_to_depth_m
 from ..effect_fits import NEEDS, fit_effect, usable_captures, within_tolerance
 from ..planes import PlaneFit
 from .floor import MIN_FLOOR, Z_FLOOR
@@ -182,7 +182,7 @@ def capture_rng(seed: int, capture_id: str) -> np.random.Generator:
 def _simulate_depth(geometry: CaptureGeometry, n_frames: int, seed: int, model: SensorModel, objs) -> np.ndarray:
     """One capture's simulation as metric depth (F, H, W) [m], NaN = no data, drawn from :func:`capture_rng`."""
     units = simulate_capture(geometry, int(n_frames), capture_rng(seed, geometry.id), model, objs)
-    return CaptureData.from_units(geometry, units).depth_m
+    return units_to_depth_m(units, geometry.depth_scale)
 
 
 def _simulate_sums(geometry: CaptureGeometry, cap: GapCapture, n_frames: int, seed: int, model: SensorModel,
@@ -301,6 +301,24 @@ class CaptureSimulator:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class _DepthOnAccess(Mapping):
+    """Capture id -> its metric frames (:attr:`CaptureData.depth_m`), made on each access: the
+    :class:`Diagnosis` reads one capture at a time, so the frames of every capture in metres are never in
+    memory together (the captures keep their depth units)."""
+
+    def __init__(self, captures: Sequence[CaptureData]):
+        self._by_id = {c.id: c for c in captures}
+
+    def __getitem__(self, capture_id):
+        return self._by_id[capture_id].depth_m
+
+    def __iter__(self):
+        return iter(self._by_id)
+
+    def __len__(self) -> int:
+        return len(self._by_id)
 
 
 class _KeysAsked(dict):
@@ -422,7 +440,7 @@ def split_by_depth(captures: Sequence[CaptureData], edges_m: Sequence[float], mi
                 continue
             g = c.geometry
             pid = f"{c.id}_z{lo:.2f}-{hi:.2f}"
-            part = CaptureData(dataclasses.replace(g, id=pid), c.depth_m, m, c.geometry_origin)
+            part = c.with_geometry(dataclasses.replace(g, id=pid), m)
             parts.append(part)
             parents[pid] = c.id
             distances[pid] = float(np.median(z[m]))
@@ -533,7 +551,7 @@ def diagnose(real: Sequence[CaptureData], *, heldout="auto", effects=None, seed:
     caps = [gap_capture_of(c, model, rois.get(c.id), (distances or {}).get(c.id), (kinds or {}).get(c.id),
                            (angles or {}).get(c.id)) for c in real]
     with CaptureSimulator(geoms, model, seed, jobs) as simulator:
-        dg = Diagnosis(caps, {c.id: c.depth_m for c in real}, fit_ids, held_ids,
+        dg = Diagnosis(caps, _DepthOnAccess(real), fit_ids, held_ids,
                        simulator, EffectFitter(fit_real, model, seed, rois or None, simulator),
                        binning=binning or Binning(), n_splits=n_splits, n_boot=n_boot, seed=int(seed),
                        config=config or SelectionConfig(), progress=progress, fitted_ids=fitted)

@@ -126,7 +126,9 @@ class Diagnosis:
     ----------
     captures : sequence of GapCapture
     real_depth : mapping id -> ndarray (F, H, W) float [m]
-        The real frames (NaN = no data). Captures with more frames than the fewest are cut to it.
+        The real frames (NaN = no data). Captures with more frames than the fewest are cut to it. Each is
+        read twice (its checks, then its sums) and not kept, so a mapping that makes the frames on access
+        holds one capture's at a time.
     fit_ids, heldout_ids : sequence of str
         Whole captures used to fit effects and to validate them (disjoint). With no held-out capture
         the fit captures validate (the report says so).
@@ -170,13 +172,13 @@ class Diagnosis:
         self.fit_ids, self.heldout_ids = fit_ids, heldout_ids
         self.validation_ids = heldout_ids if heldout_ids else fit_ids
         self.all_ids = fit_ids + heldout_ids
-        frames = {}
-        for i in self.all_ids:
+        n_frames = {}
+        for i in self.all_ids:                     # one capture's frames at a time (real_depth may make them)
             if i not in real_depth:
                 raise ValueError(f"no real depth for capture {i!r}")
-            frames[i] = check_depth_stack(self.captures[i], real_depth[i])
-        self.n_frames = min(d.shape[0] for d in frames.values())
-        self.cut_frames = sorted(i for i, d in frames.items() if d.shape[0] > self.n_frames)
+            n_frames[i] = check_depth_stack(self.captures[i], real_depth[i]).shape[0]
+        self.n_frames = min(n_frames.values())
+        self.cut_frames = sorted(i for i, n in n_frames.items() if n > self.n_frames)
         self.simulate, self.fit = simulate, fit
         self.binning, self.config, self.progress = binning, config, progress
         self.seed = int(seed)
@@ -185,7 +187,8 @@ class Diagnosis:
         self.n_sim_frames = F if F >= 2 else int(n_floor_frames)
         self.real_sampling = frame_sampling(F, seed, n_splits, n_boot)
         self.sim_sampling = frame_sampling(self.n_sim_frames, seed + 1, n_splits if self.single_frame else 0, n_boot)
-        self.real_sums = {i: capture_sums(self.captures[i], d[:F], self.real_sampling) for i, d in frames.items()}
+        self.real_sums = {i: capture_sums(self.captures[i], np.asarray(real_depth[i])[:F], self.real_sampling)
+                          for i in self.all_ids}
         self.fitted_bins = {binning.bins(self.captures[i]) for i in fitted_ids if i in self.captures}
         self._sums: dict = {}
         self._pending: dict = {}

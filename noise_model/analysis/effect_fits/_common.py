@@ -233,7 +233,7 @@ def _sample_mask(g, model, max_px: int = _MAX_SAMPLE_PX, roi=None):
 
 def _pixels(c, mask):
     """Frames of c at the mask's pixels: (F, N) depth [m]."""
-    return c.depth_m[:, mask]
+    return c.pixels_m(mask)
 
 
 def _disp_sigma(z, th, model, depth_scale, fb):

@@ -104,8 +104,8 @@ def _fit_dropout(real, base, model, rois=None, **_):
             continue
         zs = z[m]
         x = -np.log(np.cos(np.minimum(np.abs(th[m]), DROPOUT_THETA_MAX_RAD)))
-        miss_r = ~np.isfinite(c.depth_m)
-        miss_b = ~np.isfinite(b.depth_m)
+        miss_r = ~c.has_data()
+        miss_b = ~b.has_data()
         # bins 3 % wide in z (P varies little inside one)
         _, binid = np.unique(np.floor(np.log(zs) / 0.03).astype(np.int64), return_inverse=True)
         binid = binid.ravel()

@@ -66,8 +66,8 @@ def _fit_disparity_noise(real, base, model, rois=None, **_):
             sdi = np.ones(m.shape)
             sdi[m] = sd
             with np.errstate(divide="ignore", invalid="ignore"):
-                pr = _plane_residual(fb / c.depth_m[0], m, sdi)
-                pb = _plane_residual(fb / b.depth_m[0], m, sdi)
+                pr = _plane_residual(fb / c.frame_m(0), m, sdi)
+                pb = _plane_residual(fb / b.frame_m(0), m, sdi)
             if pr is None or pb is None:
                 continue
             a, ka = _robust_mean_square(pr[0][m], sd)
@@ -409,7 +409,7 @@ def frame_offset_variance(c, m, weight) -> float:
     if F < 2:
         return float("nan")
     with np.errstate(divide="ignore", invalid="ignore"):
-        d = c.geometry.fb_px_m / c.depth_m[:, m]
+        d = c.geometry.fb_px_m / c.pixels_m(m)
     ok = np.all(np.isfinite(d), axis=0)
     if ok.sum() < 100:
         return float("nan")

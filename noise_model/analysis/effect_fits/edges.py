@@ -144,7 +144,7 @@ def _fit_flying_pixels(real, base, model, rois=None, **_):
             h_exc += hr - hb
             delta = (side["dfg_edge"] + m_fg) - (side["dbg"] + m_bg)
             q = max(0.0, (delta - 5.0 * sig_fg - 5.0 * sig_bg) / delta)
-            v = float(np.mean(np.isfinite(b.depth_m[:, side["S"]])))
+            v = float(np.mean(np.isfinite(b.pixels_m(side["S"]))))
             denom_unit.append(q * v * c.n_frames * side["rows"])
     if not denom_unit:
         raise ValueError("flying_pixels: needs boards before a background with rows crossing their edges")

@@ -168,11 +168,11 @@ def _pixel_variances(c, m, sref, fb, zs):
     sc = np.ones(m.shape)
     sc[m] = sref * fb / np.maximum(zs, 1e-6) ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
-        pr = _plane_residual(fb / c.depth_m[0], m, sc)
+        pr = _plane_residual(fb / c.frame_m(0), m, sc)
     if pr is None:
         return np.full(int(m.sum()), np.nan), 1
     with np.errstate(divide="ignore", invalid="ignore"):
-        r = c.depth_m[0][m] - fb / pr[1][m]
+        r = c.frame_m(0)[m] - fb / pr[1][m]
     _, keep = _robust_mean_square(r, sref)
     return np.where(keep, r * r, np.nan), 1
 
