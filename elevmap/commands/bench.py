@@ -24,6 +24,7 @@ from noise_model.sim import (
     DEFAULT_T_BASE_CAM, Scene, camera_extrinsics, render_depth, render_depth_reference, render_floor,
     render_planar_target, walk,
 )
+from noise_model.valid_margin import drop_valid_margin
 
 from ..map import fusion, queries
 from ..map.elevation_map import ElevationMap
@@ -167,6 +168,9 @@ def _bench_mapper(frames, reference_frames, n, bar):
                 ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
                 # the frame's split: the noise model, and the map (fusion, clean-up, neighbourhood spread)
                 parts = {key: round(float(np.median(values[-nf:])), 4) for key, values in split.items()}
+                if impl == "numba":        # the noise model's first pass alone: the valid-region margin
+                    margin = mapper.cameras["d435"].valid_margin_px
+                    parts["margin_ms"] = round(_median_ms(lambda: drop_valid_margin(d, margin, nthreads=n), nf, 2), 4)
                 out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
                                    map_cells=mapper.map.n ** 2, resolution_m=0.04, **parts))
     return out
@@ -400,7 +404,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
         :data:`noise_model.kernels.STAGES` timed alone; ``run``/``run_rrd`` records ``frames_per_s`` end to end and
         ``split_ms`` (:mod:`elevmap.commands.bench_run`); the ``update`` numba records ``stages`` [ms] (the map's
         fusion stage by stage, :func:`_bench_update`), ``floor_ratio`` (to the ``floor`` record of the same points)
-        and ``cleanup_ms``; the ``mapper*`` records ``noise_ms`` and ``fusion_ms`` (a frame's split);
+        and ``cleanup_ms``; the ``mapper*`` records ``noise_ms`` and ``fusion_ms`` (a frame's split; the numba ones
+        also ``margin_ms``, the valid-region margin of ``noise_ms`` timed alone);
         ``first_frame_*`` records carry ``seconds``, ``stereo`` records ``target_ms``, ``render_ms`` and
         ``noise_and_match_ms`` (points: its valid pixels).
     """
@@ -489,7 +494,8 @@ def format_table(report: dict) -> str:
                          f"{sum(r['stages'].values()):.2f})")
     for r in rows:
         if r["name"].startswith("mapper") and r["impl"] == "numba" and "fusion_ms" in r:
-            lines.append(f"{r['name']} {r['width']}x{r['height']}: noise model {r['noise_ms']:.2f} ms, map "
+            margin = f" (valid-region margin {r['margin_ms']:.2f} ms)" if "margin_ms" in r else ""
+            lines.append(f"{r['name']} {r['width']}x{r['height']}: noise model {r['noise_ms']:.2f} ms{margin}, map "
                          f"{r['fusion_ms']:.2f} ms")
         if r["name"] == "update" and r["impl"] == "numba":
             st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
