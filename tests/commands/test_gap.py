@@ -235,6 +235,32 @@ def test_forward_selection_finds_the_toy_effect_and_ablation_confirms_it():
     assert top["stratum"]["image_cell"][1] == 0 if "image_cell" in top["stratum"] else True
 
 
+def test_a_candidate_pruned_before_the_noise_it_needs_is_tried_again():
+    # the bias's fit comes out at zero while the model lacks the band (as a correlated field's does on top of
+    # the reference's too large noise, before axial_refit replaces it): pruned in round 1, it is found only
+    # when the band's acceptance readmits it
+    caps, by_id = _toy_set()
+    ids = [c.id for c in caps]
+    real = _toy_sim(by_id, ids, [("band", {"m": 40}), ("bias", {"b": 0.0003})], 12, 5)
+
+    def fit(name, base):
+        if name == "band":
+            return {"m": 40}
+        return {"b": 0.0003 if any(n == "band" for n, _ in base) else 0.0}
+    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
+    found = {}
+    for readmit in ((), ("band",)):
+        dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
+                         lambda i, e, n: _toy_sim(by_id, i, e, n, 99), fit, n_splits=16, n_boot=16,
+                         config=G.SelectionConfig(readmit_after=readmit))
+        rep = dg.run(["bias", "band"]).report
+        found[readmit] = [e["name"] for e in rep["effects"]]
+        if readmit:
+            assert rep["rounds"][0]["readmitted"] == ["bias"]
+    assert found[()] == ["band"] and found[("band",)] == ["band", "bias"]
+    assert G.SelectionConfig().readmit_after == ("axial_refit",)
+
+
 def test_an_effect_is_material_by_its_share_of_the_gap_left():
     # a wide band (most of the gap) and a 0.3 mm bias: after the band, the bias removes most of what is
     # left, though far less than 5 % of the baseline; the rule takes it, and its threshold is 5 % of the

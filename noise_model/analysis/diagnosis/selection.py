@@ -50,6 +50,13 @@ class SelectionConfig:
     prune : bool
         From the second round on, only candidates that shrank the fit gap in the previous round are
         tried again (saves time; an effect that did not help before rarely helps after another).
+    readmit_after : tuple of str
+        With ``prune``: once one of these effects is accepted, every candidate pruned before is tried again.
+        ``axial_refit`` replaces the axial noise that the effects sized in units of it
+        (``correlated_noise``, ``static_noise``) are fitted on top of: fitted on the reference's noise
+        (on a stereo camera many times the real one at slant angles) such a field comes out at zero size,
+        cannot shrink anything, and would otherwise be pruned for good before the noise it belongs to is
+        in the model.
     backfit : bool
         After each accepted effect from the second on, every effect selected before it is fitted again
         on top of all the others (backfitting): an effect fitted while the model lacked a later one has
@@ -62,6 +69,7 @@ class SelectionConfig:
     min_shrink: float = 0.05
     max_effects: int = 8
     prune: bool = True
+    readmit_after: tuple = ("axial_refit",)
     backfit: bool = True
 
 
@@ -361,6 +369,7 @@ class Diagnosis:
         effects_out: list = []
         cur_fit, cur_val = b_fit, b_val
         remaining = list(dict.fromkeys(candidates))
+        all_candidates = list(remaining)
         stop_reason = "no candidate effects" if not remaining else None
         if self.fit is None and remaining:
             stop_reason = "no fit function: baseline only"
@@ -425,6 +434,12 @@ class Diagnosis:
             cur_fit, cur_val = r_fit, r_val
             if cfg.prune:
                 remaining = [t[0]["name"] for t in ok[1:] if t[2].G < prev_fit]
+                if entry["name"] in cfg.readmit_after:
+                    chosen = {n for n, _ in model}
+                    back = [n for n in all_candidates if n not in chosen and n not in remaining]
+                    if back:
+                        rnd["readmitted"] = back
+                        remaining += back
             else:
                 remaining = [t[0]["name"] for t in tried if t[0]["name"] != entry["name"]]
             if cfg.backfit and len(selected) > 1:
