@@ -65,14 +65,23 @@ THREADSAFE_LAYERS = ("omp", "tbb")
 _LAYER_LOCK = threading.RLock()
 
 
+#: The answer of :func:`layer_is_threadsafe` once numba has chosen its layer (it cannot change after).
+_LAYER_KNOWN: list[bool] = []
+
+
 def layer_is_threadsafe() -> bool | None:
     """True for the OpenMP and TBB layers, False for numba's own ``workqueue`` (which aborts the process
     when two Python threads launch parallel kernels at once), None before the first parallel launch (numba
-    picks its layer then: ``workqueue`` where neither TBB nor an OpenMP runtime such as libgomp1 is found)."""
+    picks its layer then: ``workqueue`` where neither TBB nor an OpenMP runtime such as libgomp1 is found).
+    The answer is kept once known: numba loads one layer per process."""
+    if _LAYER_KNOWN:
+        return _LAYER_KNOWN[0]
     try:
-        return numba.threading_layer() in THREADSAFE_LAYERS
+        safe = numba.threading_layer() in THREADSAFE_LAYERS
     except ValueError:
         return None
+    _LAYER_KNOWN.append(safe)
+    return safe
 
 
 @contextlib.contextmanager
@@ -88,6 +97,9 @@ def threads(nthreads):
     n = resolve_threads(nthreads)
     with contextlib.nullcontext() if layer_is_threadsafe() else _LAYER_LOCK:
         previous = numba.get_num_threads()
+        if previous == n:                  # the common case: nothing to set or restore
+            yield n
+            return
         numba.set_num_threads(n)
         try:
             yield n
