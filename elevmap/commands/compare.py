@@ -28,7 +28,8 @@ The frames are rendered once and fed, unchanged, to each mapper:
 Every mapper has the same map settings (:class:`elevmap.pipeline.MappingConfig`: 8 m at 0.04 m,
 visibility clean-up, re-centred on the camera every frame); a capped mapper differs from its base only
 in the cap. At the end of the walk each map is scored by :func:`elevmap.pipeline.map_error` against the
-true height at the centres of its known cells, plus the mean sigma over its known cells (sharpness), the
+true height at the centres of its known cells (:func:`closed_truth`: a centre on a step's edge is scored
+against the upper side, as the scene's closed footprints define it), plus the mean sigma over its known cells (sharpness), the
 known-cell fraction, the step-edge band's scores (the cells within two cells of a step: error, coverage,
 NLL, and the fraction of the band's seen cells the mapper knows) and the median time per frame
 (``Mapper.integrate``: noise model + fusion + clean-up; the alternatives' time includes the paper's
@@ -93,7 +94,7 @@ __all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "DEFAULT_CAP", "D
            "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "EDGE_RINGS", "edge_profile", "run_compare", "render_walk",
            "MapperSpec", "mapper_specs",
            "json_ready", "frames_digest",
-           "most_confident"]
+           "most_confident", "closed_truth", "TRUTH_BOUNDARY_TOL_M"]
 
 #: Mappers without a cap, in report order.
 BASE_MAPPERS = ("paper", "fitted", "disparity", "quadratic", "anybotics_d435", "constant")
@@ -325,6 +326,50 @@ def frames_digest(frames) -> str:
     for f in frames:
         _digest_update(h, f)
     return h.hexdigest()
+
+
+#: Distance [m] within which a point counts as on a footprint's boundary when the truth is scored: far below
+#: any cell or scene dimension, far above the rounding of coordinates of metres (about 1e-15 m).
+TRUTH_BOUNDARY_TOL_M = 1e-9
+
+
+def closed_truth(truth_height, tol_m: float = TRUTH_BOUNDARY_TOL_M):
+    """The true height with footprints as closed sets whatever the rounding of the coordinates.
+
+    A scene's height at a point is the highest top surface whose footprint holds the point, footprints
+    being closed sets (:meth:`noise_model.sim.Scene.height_at`), so a point on a step's edge has the
+    upper side's height: the top of the riser, which is what an elevation map stores there. A cell
+    centre that lies on an edge by construction (the stairs' landing ends at x = 4.74 m, a cell centre)
+    can miss the footprint by a rounding error, and the cell would be scored against the lower side. The
+    height returned is the highest of ``truth_height`` at the point and at the 8 points ``tol_m`` away
+    along x, y and the diagonals (NaN only where all nine are NaN); a point farther than ``tol_m`` from
+    every edge gets ``truth_height``'s own value within ``tol_m`` times the terrain's slope.
+
+    Parameters
+    ----------
+    truth_height : callable
+        (M, 2) map points [m] -> (M,) heights [m].
+    tol_m : float
+        Boundary tolerance [m], in (0, 1e-3].
+
+    Returns
+    -------
+    callable
+        (M, 2) map points [m] -> (M,) heights [m].
+    """
+    if not callable(truth_height):
+        raise ValueError(f"truth_height must be callable, got {type(truth_height).__name__}")
+    tol = check_positive_scalar(tol_m, "tol_m", upper=1e-3, unit=" m")
+    offsets = np.array([(dx, dy) for dx in (-tol, 0.0, tol) for dy in (-tol, 0.0, tol) if dx or dy])
+
+    def truth(xy):
+        xy = np.asarray(xy, dtype=np.float64)
+        out = np.asarray(truth_height(xy), dtype=np.float64)
+        for off in offsets:
+            out = np.fmax(out, np.asarray(truth_height(xy + off), dtype=np.float64))
+        return out
+
+    return truth
 
 
 class _CachedTruth:
@@ -596,7 +641,7 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
     frames, walk = render_walk(scene, n_frames, seed, effects, width, height, show_progress, real["sensor"], preset,
                                work=work, reality_key=key)
     render_ms = 1e3 * (time.perf_counter() - t0) / max(1, len(frames))
-    truth = _CachedTruth(walk.truth_height)
+    truth = _CachedTruth(closed_truth(walk.truth_height))
     digest = frames_digest(frames)
     logger = None
     if rrd_path is not None:

@@ -497,6 +497,35 @@ def test_edge_profile_by_hand():
     assert rings[1]["nll_sum"] == pytest.approx(6 * nll0) and math.isnan(rings[3]["rmse_m"])
 
 
+def test_a_cell_centred_on_a_steps_edge_is_scored_against_the_upper_side():
+    from elevmap.commands.compare import closed_truth
+    from elevmap.sources.simulated import SimulatedWalk
+
+    # a landing whose closed footprint ends at x = 4.74 m, tested as a box is: |x - centre| <= half size
+    centre_x = 1.5 + 6 * 0.29 + 0.5 * 1.5
+    assert abs(4.74 - centre_x) > 0.75               # rounding puts the cell centre 4.74 just outside
+
+    def step(xy):
+        return np.where(np.abs(xy[:, 0] - centre_x) <= 0.75, 1.02, 0.0)
+
+    xy = np.array([[4.74, 0.0], [4.70, 0.0], [4.78, 0.0], [4.74 + 2e-9, 0.0]])
+    assert step(xy).tolist() == [0.0, 1.02, 0.0, 0.0]
+    assert closed_truth(step)(xy).tolist() == [1.02, 1.02, 0.0, 0.0]
+    # a corner missed in x and y alike, and NaN only where every sample is NaN
+    corner = lambda xy: np.where((xy[:, 0] <= 1.0 - 1e-12) & (xy[:, 1] <= 1.0 - 1e-12), 0.3, np.nan)
+    assert closed_truth(corner)(np.array([[1.0, 1.0], [0.5, 0.5]])).tolist() == [0.3, 0.3]
+    assert np.isnan(closed_truth(corner)(np.array([[1.1, 1.0]]))[0])
+    # the default stairs walk: the landing's far edge lies on a column of cell centres
+    walk = SimulatedWalk("stairs", n_frames=1)
+    xy = np.array([[4.74, 0.0], [4.74, 0.6], [4.74, 0.62], [1.5, 0.0], [2.66, 0.3], [7.0, 1.0]])
+    assert walk.truth_height(xy)[0] == 0.0
+    np.testing.assert_allclose(closed_truth(walk.truth_height)(xy), [1.02, 1.02, 0.0, 0.17, 0.85, 0.0], atol=1e-12)
+    with pytest.raises(ValueError, match="tol_m"):
+        closed_truth(step, tol_m=0.01)
+    with pytest.raises(ValueError, match="callable"):
+        closed_truth(3.0)
+
+
 def test_seed_summary_and_criteria_by_hand():
     from elevmap.commands.compare_seeds import SUMMARY_KEYS, criteria, format_seeds_table, summarise
 
