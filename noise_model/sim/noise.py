@@ -29,7 +29,7 @@ Effect hook contract: ``effect(z, theta, rng, context) -> z``.
 
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from ..checks import check_positive_scalar
 from ..d435 import D435, SensorModel, axial_sigma_unchecked
 from ._checks import _rng
 
-__all__ = ["add_noise"]
+__all__ = ["PreparedNoise", "add_noise", "noisy_frame", "prepare_noise"]
 
 
 def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None = D435,
@@ -70,6 +70,27 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
     ndarray, shape (H, W), uint16
         round(z / depth_scale); 0 = no data (no hit, z <= 0, not finite, or beyond 65535 units).
     """
+    prepared = prepare_noise(z_true, theta, model, effects, depth_scale, context)
+    return noisy_frame(prepared, rng, context)
+
+
+class PreparedNoise(NamedTuple):
+    """What :func:`add_noise` computes from a render before it draws: the checked inputs and sigma_z.
+
+    A render that is the same in every frame (a wall) is prepared once and drawn many times
+    (:func:`noisy_frame`), with the draws of :func:`add_noise` itself.
+    """
+
+    z_true: np.ndarray          # (H, W) float64 [m], NaN = no hit
+    theta: np.ndarray           # (H, W) float64 [rad]
+    sigma_z: np.ndarray | None  # (H, W) float64 [m], read only; None = no model
+    effects: tuple
+    depth_scale: float          # [m / unit]
+
+
+def prepare_noise(z_true, theta, model: SensorModel | None = D435, effects: Sequence[Callable] | None = None,
+                  depth_scale: float = 0.001, context: dict | None = None) -> PreparedNoise:
+    """Check :func:`add_noise`'s inputs and compute sigma_z(z_true, theta) once (parameters as there)."""
     z_t = np.asarray(z_true)
     th = np.asarray(theta)
     if z_t.ndim != 2 or z_t.shape[0] < 1 or z_t.shape[1] < 1:
@@ -82,7 +103,6 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
         raise ValueError(f"theta must be floating-point radians, got dtype {th.dtype}")
     z_t = z_t.astype(np.float64, copy=False)
     th = th.astype(np.float64, copy=False)
-    rng = _rng(rng)
     scale = check_positive_scalar(depth_scale, "depth_scale", upper=0.1, unit=" m per unit")
     if model is not None and not isinstance(model, SensorModel):
         raise ValueError(f"model must be a SensorModel or None, got {type(model).__name__}")
@@ -90,6 +110,8 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
     for k, e in enumerate(effects):
         if not callable(e):
             raise ValueError(f"effects[{k}] is not callable: {e!r}")
+    if effects and context is not None and not isinstance(context, dict):
+        raise ValueError(f"context must be a dict or None, got {type(context).__name__}")
     hit = ~np.isnan(z_t)
     zh = z_t[hit]
     if zh.size:
@@ -103,18 +125,31 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
         if float(np.abs(tt).max()) > np.pi:
             raise ValueError(f"theta holds values up to {float(np.abs(tt).max()):.1f}: theta must be in radians")
     sigma = None
-    if model is None:
-        z = z_t.copy()
-    else:
+    if model is not None:
         K = (context or {}).get("K") if isinstance(context, dict) else None
         if model.family == "disparity" and model.frame_fx_px is None and K is not None:
             model = model.with_focal(float(np.asarray(K, dtype=np.float64)[0, 0]))   # sigma_z needs f
         sigma = np.zeros_like(z_t)
         sigma[hit] = axial_sigma_unchecked(zh, th[hit], model)
+        sigma.flags.writeable = False
+    return PreparedNoise(z_t, th, sigma, effects, scale)
+
+
+def noisy_frame(prepared: PreparedNoise, rng: np.random.Generator, context: dict | None = None) -> np.ndarray:
+    """One frame of :func:`add_noise` from a :func:`prepare_noise` result: the same draws in the same order.
+
+    Returns
+    -------
+    ndarray, shape (H, W), uint16
+        As :func:`add_noise`.
+    """
+    rng = _rng(rng)
+    z_t, th, sigma, effects, scale = prepared
+    if sigma is None:
+        z = z_t.copy()
+    else:
         z = z_t + rng.normal(0.0, 1.0, z_t.shape) * sigma
     if effects:
-        if context is not None and not isinstance(context, dict):
-            raise ValueError(f"context must be a dict or None, got {type(context).__name__}")
         th_ro = th.view()
         th_ro.flags.writeable = False
         z_ro = z_t.view()
@@ -123,7 +158,6 @@ def add_noise(z_true, theta, rng: np.random.Generator, model: SensorModel | None
         ctx.update(context or {})
         ctx.update(width=z_t.shape[1], height=z_t.shape[0], depth_scale=scale, z_true=z_ro)
         if sigma is not None:
-            sigma.flags.writeable = False
             ctx["sigma_z"] = sigma
         for k, e in enumerate(effects):
             out = np.asarray(e(z, th_ro, rng, ctx))

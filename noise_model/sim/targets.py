@@ -71,7 +71,7 @@ import numpy as np
 from ..checks import check_intrinsics, check_positive_scalar
 from ..d435 import D435, SensorModel
 from ._checks import _rng
-from .noise import add_noise
+from .noise import noisy_frame, prepare_noise
 from .scene import Scene, Target
 
 __all__ = ["target_rotation", "camera_extrinsics", "render_planar_target", "render_floor", "CaptureGeometry",
@@ -676,21 +676,26 @@ def simulate_target(geometry: CaptureGeometry, n_frames: int, rng: np.random.Gen
     g = geometry
     out = np.zeros((int(n_frames), g.height, g.width), dtype=np.uint16)
     z_max = min(100.0, 65535 * g.depth_scale)
+    frame_effects = (_RecordReference(),) + effects if effects else None
+    static = None                                  # a wall renders the same every frame: prepared once
     for f in range(int(n_frames)):
-        if g.kind == "board":
-            shift = (rng.normal(0.0, model.sigma_L), rng.normal(0.0, model.sigma_R))
-            z_true, theta = g.render(shift)
+        ctx = {"K": g.K, "index": f, "baseline_m": g.baseline_m, **(context or {})} if effects else None
+        if static is None:
+            if g.kind == "board":
+                shift = (rng.normal(0.0, model.sigma_L), rng.normal(0.0, model.sigma_R))
+                z_true, theta = g.render(shift)
+            else:
+                z_true, theta = g.render()
+            far = z_true > z_max                   # beyond what a uint16 depth can hold: no data
+            if far.any():
+                z_true = np.where(far, np.nan, z_true)
+                theta = np.where(far, np.nan, theta)
+            prepared = prepare_noise(z_true, theta, model, frame_effects, g.depth_scale, ctx)
+            if g.kind != "board":
+                static = prepared
         else:
-            z_true, theta = g.render()
-        far = z_true > z_max                       # beyond what a uint16 depth can hold: no data
-        if far.any():
-            z_true = np.where(far, np.nan, z_true)
-            theta = np.where(far, np.nan, theta)
-        if effects:
-            ctx = {"K": g.K, "index": f, "baseline_m": g.baseline_m, **(context or {})}
-            out[f] = add_noise(z_true, theta, rng, model, (_RecordReference(),) + effects, g.depth_scale, ctx)
-        else:
-            out[f] = add_noise(z_true, theta, rng, model, None, g.depth_scale)
+            prepared = static
+        out[f] = noisy_frame(prepared, rng, ctx)
     return out
 
 
