@@ -63,8 +63,8 @@ class MappingConfig:
         while raw depth (the default) is one copy that rerun compresses with LZ4 on its own thread. Both
         replay bit-exact.
     sensor_model : str
-        A sensor model file (``elevmap-sensor-model/1`` or ``/2``, as ``elevmap characterize`` writes
-        it) for every camera of the run; "" = the paper's D435.
+        A sensor model file (``elevmap-sensor-model/1``, ``/2`` or ``/3`` with its per-frame error, as
+        ``elevmap characterize`` writes it) for every camera of the run; "" = the paper's D435.
     valid_margin_px : int or None
         Every camera's valid-region margin [px] (:attr:`elevmap.mapper.Camera.valid_margin_px`): depth pixels
         within this many columns of a no-data pixel or of the image's left or right border are dropped,
