@@ -284,11 +284,12 @@ def format_summary(report: dict, top: int = 8) -> str:
                        f"{t['gap_heldout_after']:.3g}, smaller in {100 * t['fraction']:.0f} % of the bootstrap "
                        f"replicates: {verdict}")
         for bf in rnd.get("backfit", []):
+            also = "".join(f" with {w['name']}({_params_text(w['params'])})" for w in bf.get("refit_with", ()))
             if bf.get("kept"):
-                out.append(f"    refitted {bf['name']}({_params_text(bf['params'])}) on top of the others: held-out "
-                           f"gap {bf['gap_heldout_before']:.3g} -> {bf['gap_heldout_after']:.3g}")
+                out.append(f"    refitted {bf['name']}({_params_text(bf['params'])}){also} on top of the others: "
+                           f"held-out gap {bf['gap_heldout_before']:.3g} -> {bf['gap_heldout_after']:.3g}")
             else:
-                out.append(f"    refit of {bf['name']} not kept ({bf.get('why') or bf.get('error', '')})")
+                out.append(f"    refit of {bf['name']}{also} not kept ({bf.get('why') or bf.get('error', '')})")
     for e in report["effects"]:
         a = e.get("ablation", {})
         conf = "confirmed" if a.get("confirmed") else "NOT confirmed"

@@ -308,6 +308,71 @@ def test_an_effect_fitted_before_another_is_fitted_again_on_top_of_it():
     assert res.selected[0] == ("band", {"m": 40}) and rep["final"]["shrink_heldout"] > 0.99
 
 
+def _toy_sim_sized(by_id, ids, effects, n_frames, seed):
+    """z_true + s sigma_z (N + q N') + k s sigma_z G: 'noise' (s, the axial noise's scale), 'temporal' (q, a
+    second noise drawn each frame, in units of the axial one), 'static' (k, a field G fixed over the frames,
+    drawn from the seed, in units of the axial one)."""
+    p = {n: q for n, q in effects}
+    s = p.get("noise", {}).get("s", 1.0)
+    out = {}
+    for i in ids:
+        c = by_id[i]
+        rng = np.random.default_rng([seed, int(1000 * c.distance_m), int(c.angle_deg)])
+        sd = s * c.sigma_m[None]
+        d = c.z_true_m[None] + sd * rng.standard_normal((n_frames, H, W))
+        if "temporal" in p:
+            d = d + p["temporal"]["q"] * sd * rng.standard_normal((n_frames, H, W))
+        if "static" in p:
+            d = d + p["static"]["k"] * sd * rng.standard_normal((1, H, W))
+        out[i] = d
+    return out
+
+
+def test_a_field_sized_in_units_of_the_axial_noise_is_refitted_with_it():
+    # real: axial noise 0.7, a second temporal noise of the same size (total 0.99), a static field of 3
+    # (absolute, in units of sigma_z). Fitted before the second noise, the axial noise took the whole 0.99
+    # and the static field 3 / 0.99 of it. The axial refit (0.99 / sqrt(2)) is tried together with the
+    # static field's refit on top of it (3 / 0.7), so the static field keeps its size
+    caps, by_id = _toy_set()
+    ids = [c.id for c in caps]
+    s_real = 0.99 / math.sqrt(2.0)
+    real = _toy_sim_sized(by_id, ids, [("noise", {"s": s_real}), ("temporal", {"q": 1.0}),
+                                       ("static", {"k": 3.0 / s_real})], 12, 5)
+
+    def fit(name, base):
+        b = dict(base)
+        if name == "noise":
+            return {"s": 0.99 / math.sqrt(1.0 + b.get("temporal", {"q": 0.0})["q"] ** 2)}
+        if name == "static":
+            return {"k": 3.0 / b.get("noise", {"s": 1.0})["s"]}
+        return {"q": 1.0}
+
+    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
+    first = [("noise", {"s": 0.99}), ("static", {"k": 3.0 / 0.99}), ("temporal", {"q": 1.0})]
+    out = {}
+    for cfg in (G.SelectionConfig(refit_with=(("noise", ("static",)),)), G.SelectionConfig(refit_with=())):
+        dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
+                         lambda i, e, n: _toy_sim_sized(by_id, i, e, n, 99), fit, n_splits=16, n_boot=16,
+                         config=cfg)
+        cur_fit, cur_val = dg.evaluate(first, dg.fit_ids), dg.evaluate(first, dg.validation_ids)
+        effects_out = [{"name": n, "params": q} for n, q in first]
+        rnd = {}
+        selected, new_fit, _ = dg._backfit(list(first), cur_fit, cur_val, effects_out, rnd)
+        out[cfg.refit_with] = (selected, rnd["backfit"], cur_fit.G, new_fit.G)
+    selected, log, g0, g1 = out[(("noise", ("static",)),)]
+    assert log[0]["name"] == "noise" and log[0]["kept"]
+    assert log[0]["refit_with"] == [{"name": "static", "params": {"k": pytest.approx(3.0 / s_real)}}]
+    s, k = dict(selected)["noise"]["s"], dict(selected)["static"]["k"]
+    assert s == pytest.approx(s_real) and k * s == pytest.approx(3.0)
+    assert g1 < g0
+    # the refit alone shrinks the static field to 0.71 of its size: the fit gap refuses it, and the temporal
+    # variance stays counted twice
+    selected, log, g0, g1 = out[()]
+    assert log[0]["name"] == "noise" and not log[0]["kept"] and "refit_with" not in log[0]
+    assert dict(selected)["noise"]["s"] == 0.99
+    assert G.SelectionConfig().refit_with == (("axial_refit", ("static_noise",)),)
+
+
 # ---------------------------------------------------------------------------------------------
 # orchestration: capture set on disk -> report -> effects again
 # ---------------------------------------------------------------------------------------------

@@ -63,6 +63,16 @@ class SelectionConfig:
         taken that one's share (``axial_refit`` fitted to a white model takes the whole temporal
         variance, and a correlated field then adds to it instead of taking its share). The refit is
         kept when it lowers the fit gap and the held-out gap passes the shrink test's significance.
+    refit_with : tuple of (str, tuple of str)
+        Backfitting: when the first effect of a pair is refitted, the selected effects named in the second
+        are fitted again on top of the refit in the same trial, which is kept or dropped as a whole. For
+        effects whose size is a parameter in units of the first's output: ``static_noise`` is a fraction of
+        the sigma_z ``axial_refit`` sets, and what its fit measures is the static field's size in the data.
+        A refit of ``axial_refit`` alone (lower once a correlated field takes its temporal share) would
+        shrink that static field by the same factor; the fit gap would then weigh a smaller temporal error
+        against a new static one, and could refuse the refit, leaving the temporal variance counted twice.
+        ``correlated_noise`` is not in the list: its temporal variance, k^2 sigma_z^2, is the share the
+        refit of ``axial_refit`` leaves to it (the refit divides the real variance by 1 + k^2).
     """
 
     alpha: float = 0.05
@@ -71,6 +81,7 @@ class SelectionConfig:
     prune: bool = True
     readmit_after: tuple = ("axial_refit",)
     backfit: bool = True
+    refit_with: tuple = (("axial_refit", ("static_noise",)),)
 
 
 def model_key(effects) -> tuple:
@@ -312,8 +323,10 @@ class Diagnosis:
 
     def _backfit(self, selected, cur_fit, cur_val, effects_out, rnd):
         """Fit every effect selected before the last one again on top of all the others
-        (:attr:`SelectionConfig.backfit`); keep a refit that lowers the fit gap and shrinks the held-out gap
-        significantly. Records each attempt in ``rnd["backfit"]`` and updates ``effects_out``'s parameters.
+        (:attr:`SelectionConfig.backfit`), with the effects sized in its units fitted again on top of it
+        (:attr:`SelectionConfig.refit_with`); keep a refit that lowers the fit gap and shrinks the held-out gap
+        significantly. Records each attempt in ``rnd["backfit"]`` (``refit_with``: the effects refitted with
+        it) and updates ``effects_out``'s parameters.
 
         Returns
         -------
@@ -332,12 +345,20 @@ class Diagnosis:
                 log.append({"name": name, "params": params, "kept": False, "why": "same parameters"})
                 continue
             trial = selected[:j] + [(name, params)] + selected[j + 1:]
+            follow = dict(self.config.refit_with).get(name, ())
+            with_ = {}
             try:
+                for i, (other, _) in enumerate(trial):
+                    if other in follow:
+                        trial[i] = (other, dict(self.fit(other, trial[:i] + trial[i + 1:])))
+                        with_[i] = trial[i]
                 r_fit = self.evaluate(trial, self.fit_ids)
             except ValueError as exc:
                 log.append({"name": name, "params": params, "error": str(exc), "kept": False})
                 continue
             entry = {"name": name, "params": params, "gap_fit_before": cur_fit.G, "gap_fit_after": r_fit.G}
+            if with_:
+                entry["refit_with"] = [{"name": n, "params": p} for n, p in with_.values()]
             if not r_fit.G < cur_fit.G:
                 log.append({**entry, "kept": False, "why": "the fit gap does not fall"})
                 continue
@@ -350,6 +371,9 @@ class Diagnosis:
             log.append({**entry, "kept": True})
             effects_out[j]["params_first_fit"] = effects_out[j].get("params_first_fit", effects_out[j]["params"])
             effects_out[j]["params"] = params
+            for i, (_, p) in with_.items():
+                effects_out[i]["params_first_fit"] = effects_out[i].get("params_first_fit", effects_out[i]["params"])
+                effects_out[i]["params"] = p
             selected, cur_fit, cur_val = trial, r_fit, r_val
         return selected, cur_fit, cur_val
 
