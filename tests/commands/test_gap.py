@@ -370,7 +370,8 @@ def test_a_field_sized_in_units_of_the_axial_noise_is_refitted_with_it():
     selected, log, g0, g1 = out[()]
     assert log[0]["name"] == "noise" and not log[0]["kept"] and "refit_with" not in log[0]
     assert dict(selected)["noise"]["s"] == 0.99
-    assert G.SelectionConfig().refit_with == (("axial_refit", ("static_noise",)),)
+    assert G.SelectionConfig().refit_with == (("axial_refit", ("static_noise",)),
+                                              ("correlated_noise", ("axial_refit", "static_noise")))
 
 
 # ---------------------------------------------------------------------------------------------

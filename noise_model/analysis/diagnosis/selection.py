@@ -71,8 +71,12 @@ class SelectionConfig:
         A refit of ``axial_refit`` alone (lower once a correlated field takes its temporal share) would
         shrink that static field by the same factor; the fit gap would then weigh a smaller temporal error
         against a new static one, and could refuse the refit, leaving the temporal variance counted twice.
-        ``correlated_noise`` is not in the list: its temporal variance, k^2 sigma_z^2, is the share the
-        refit of ``axial_refit`` leaves to it (the refit divides the real variance by 1 + k^2).
+        ``correlated_noise``'s field, k sigma_z drawn each frame, is the share of the temporal variance the
+        refit of ``axial_refit`` leaves to it (that refit divides the real variance by 1 + k^2), so it does
+        not follow ``axial_refit``; the other way round, a refit of ``correlated_noise`` (a larger k once
+        the white noise under it is smaller) is tried with ``axial_refit`` refitted on top of it, so the
+        temporal variance stays the real one while its correlated share grows. The effects are refitted in
+        the order listed.
     """
 
     alpha: float = 0.05
@@ -81,7 +85,8 @@ class SelectionConfig:
     prune: bool = True
     readmit_after: tuple = ("axial_refit",)
     backfit: bool = True
-    refit_with: tuple = (("axial_refit", ("static_noise",)),)
+    refit_with: tuple = (("axial_refit", ("static_noise",)),
+                         ("correlated_noise", ("axial_refit", "static_noise")))
 
 
 def model_key(effects) -> tuple:
@@ -348,8 +353,8 @@ class Diagnosis:
             follow = dict(self.config.refit_with).get(name, ())
             with_ = {}
             try:
-                for i, (other, _) in enumerate(trial):
-                    if other in follow:
+                for other in follow:
+                    for i in [i for i, (n, _) in enumerate(trial) if n == other and i != j]:
                         trial[i] = (other, dict(self.fit(other, trial[:i] + trial[i + 1:])))
                         with_[i] = trial[i]
                 r_fit = self.evaluate(trial, self.fit_ids)
