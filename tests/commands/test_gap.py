@@ -198,6 +198,16 @@ def _toy_sim(by_id, ids, effects, n_frames, seed):
     return out
 
 
+def _toy_held_out(caps, by_id, real, fit, *, sim=None, n=16, config=None):
+    """A toy Diagnosis that holds out the 1.0 m and 1.4 m captures and simulates with seed 99."""
+    ids = [c.id for c in caps]
+    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
+    sim = sim or _toy_sim
+    extra = {} if config is None else {"config": config}
+    return G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
+                       lambda i, e, k: sim(by_id, i, e, k, 99), fit, n_splits=n, n_boot=n, **extra)
+
+
 def test_identical_distributions_have_no_significant_gap():
     caps, by_id = _toy_set()
     ids = [c.id for c in caps]
@@ -220,10 +230,7 @@ def test_forward_selection_finds_the_toy_effect_and_ablation_confirms_it():
     ids = [c.id for c in caps]
     real = _toy_sim(by_id, ids, [("band", {"m": 7})], 12, 5)
     fits = {"band": {"m": 7}, "bias": {"b": 0.0005}}
-    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
-    dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
-                     lambda i, e, n: _toy_sim(by_id, i, e, n, 99), lambda name, base: fits[name], n_splits=32,
-                     n_boot=32)
+    dg = _toy_held_out(caps, by_id, real, lambda name, base: fits[name], n=32)
     res = dg.run(["bias", "band"])
     rep = res.report
     assert rep["baseline"]["significant"]
@@ -247,12 +254,9 @@ def test_a_candidate_pruned_before_the_noise_it_needs_is_tried_again():
         if name == "band":
             return {"m": 40}
         return {"b": 0.0003 if any(n == "band" for n, _ in base) else 0.0}
-    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
     found = {}
     for readmit in ((), ("band",)):
-        dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
-                         lambda i, e, n: _toy_sim(by_id, i, e, n, 99), fit, n_splits=16, n_boot=16,
-                         config=G.SelectionConfig(readmit_after=readmit))
+        dg = _toy_held_out(caps, by_id, real, fit, config=G.SelectionConfig(readmit_after=readmit))
         rep = dg.run(["bias", "band"]).report
         found[readmit] = [e["name"] for e in rep["effects"]]
         if readmit:
@@ -269,10 +273,7 @@ def test_an_effect_is_material_by_its_share_of_the_gap_left():
     ids = [c.id for c in caps]
     real = _toy_sim(by_id, ids, [("band", {"m": 40}), ("bias", {"b": 0.0003})], 12, 5)
     fits = {"band": {"m": 40}, "bias": {"b": 0.0003}}
-    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
-    dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
-                     lambda i, e, n: _toy_sim(by_id, i, e, n, 99), lambda name, base: fits[name], n_splits=16,
-                     n_boot=16)
+    dg = _toy_held_out(caps, by_id, real, lambda name, base: fits[name])
     rep = dg.run(["bias", "band"]).report
     assert [e["name"] for e in rep["effects"]] == ["band", "bias"]
     base = rep["baseline"]["gap_heldout"]
@@ -296,9 +297,7 @@ def test_an_effect_fitted_before_another_is_fitted_again_on_top_of_it():
             return {"m": 40 if any(n == "bias" for n, _ in base) else 36}
         return {"b": 0.002}
 
-    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
-    dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
-                     lambda i, e, n: _toy_sim(by_id, i, e, n, 99), fit, n_splits=16, n_boot=16)
+    dg = _toy_held_out(caps, by_id, real, fit)
     res = dg.run(["bias", "band"])
     rep = res.report
     assert [e["name"] for e in rep["effects"]] == ["band", "bias"]
@@ -347,13 +346,10 @@ def test_a_field_sized_in_units_of_the_axial_noise_is_refitted_with_it():
             return {"k": 3.0 / b.get("noise", {"s": 1.0})["s"]}
         return {"q": 1.0}
 
-    held = [i for i in ids if i.startswith("c1.0") or i.startswith("c1.4")]
     first = [("noise", {"s": 0.99}), ("static", {"k": 3.0 / 0.99}), ("temporal", {"q": 1.0})]
     out = {}
     for cfg in (G.SelectionConfig(refit_with=(("noise", ("static",)),)), G.SelectionConfig(refit_with=())):
-        dg = G.Diagnosis(caps, real, [i for i in ids if i not in held], held,
-                         lambda i, e, n: _toy_sim_sized(by_id, i, e, n, 99), fit, n_splits=16, n_boot=16,
-                         config=cfg)
+        dg = _toy_held_out(caps, by_id, real, fit, sim=_toy_sim_sized, config=cfg)
         cur_fit, cur_val = dg.evaluate(first, dg.fit_ids), dg.evaluate(first, dg.validation_ids)
         effects_out = [{"name": n, "params": q} for n, q in first]
         rnd = {}
