@@ -936,16 +936,14 @@ def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov,
         if hc is not None:
             Hx, Hxy, Hy = (bc(acc, w * hc[:, k]) / W for k in range(3))
         if cap > 0 or ell > 0 or fratio != 1.0:
-            # n_eff / (N r), n_eff = min(effective samples, cap) (see _information_scale)
-            for cnt, sums in ((N, "a"), (Nr, "r")):
+            def scale(cnt):             # n_eff / (N r), n_eff = min(effective samples, cap): _information_scale
                 ne = effective_samples(cnt, ell)
                 if cap > 0:
                     ne = np.minimum(ne, cap)
-                s = np.where(cnt > 0, ne / (np.maximum(cnt, 1) * fratio), 1.0)
-                if sums == "a":
-                    W, WZ = W * s, WZ * s
-                else:
-                    Wr, WZr = Wr * s, WZr * s
+                return np.where(cnt > 0, ne / (np.maximum(cnt, 1) * fratio), 1.0)
+
+            s, sr = scale(N), scale(Nr)
+            W, WZ, Wr, WZr = W * s, WZ * s, Wr * sr, WZr * sr
         h, v = flat[ELEVATION].copy(), flat[VARIANCE] - tau2_old - excess
         known = ~np.isnan(h)
         npo = flat[POINTS]

@@ -648,3 +648,15 @@ def test_direct_frame_offset_reads_the_per_frame_offset():
     assert direct_measurements(plain)["pooled"]["frame_offset_px"] < 0.005   # white noise: its mean over the image
     rows = check_fitted([{"name": "frame_offset", "params": {"sigma_px": got}}], direct_measurements(caps))
     assert rows[0]["quantity"] == "frame_offset_px" and rows[0]["ratio"] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("changes, msg", [
+    ({"readmit_after": "axial_refit"}, "readmit_after must be a tuple of effect names"),
+    ({"readmit_after": ("axial_refit", 3)}, "readmit_after"),
+    ({"refit_with": (("axial_refit",),)}, r"refit_with must be a tuple of \(effect name"),
+    ({"refit_with": (("axial_refit", "static_noise"),)}, r"refit_with\['axial_refit'\]"),
+])
+def test_a_bad_selection_config_is_refused_naming_the_field(changes, msg):
+    with pytest.raises(ValueError, match=msg):
+        G.SelectionConfig(**changes)
+    assert G.SelectionConfig(readmit_after=["band"]).readmit_after == ("band",)

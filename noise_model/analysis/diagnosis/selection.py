@@ -88,6 +88,22 @@ class SelectionConfig:
     refit_with: tuple = (("axial_refit", ("static_noise",)),
                          ("correlated_noise", ("axial_refit", "static_noise")))
 
+    def __post_init__(self):
+        def names(value, what):
+            if isinstance(value, str) or not isinstance(value, (tuple, list)) \
+                    or not all(isinstance(n, str) and n for n in value):
+                raise ValueError(f"SelectionConfig.{what} must be a tuple of effect names, got {value!r}")
+            return tuple(value)
+
+        object.__setattr__(self, "readmit_after", names(self.readmit_after, "readmit_after"))
+        pairs = self.refit_with
+        if isinstance(pairs, str) or not isinstance(pairs, (tuple, list)) \
+                or not all(isinstance(p, (tuple, list)) and len(p) == 2 and isinstance(p[0], str) for p in pairs):
+            raise ValueError("SelectionConfig.refit_with must be a tuple of (effect name, tuple of effect names), "
+                             f"got {pairs!r}")
+        object.__setattr__(self, "refit_with",
+                           tuple((a, names(b, f"refit_with[{a!r}]")) for a, b in pairs))
+
 
 def model_key(effects) -> tuple:
     """A hashable key of a model (a list of (name, params) effects): equal for equal effects and
