@@ -185,6 +185,27 @@ class CaptureData:
             return units_to_depth_m(self._units[:, mask], self.geometry.depth_scale)
         return self._depth[:, mask]
 
+    def interior(self, max_depth_m: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels that see the target's interior, and the true depth.
+
+        Interior = the geometry's ``interior`` region (not an edge band, the left invalid band or the
+        background), a finite true depth below ``max_depth_m`` (beyond it the render is the empty scene),
+        and inside :attr:`mask` when there is one: the pixels on which per-capture statistics (lag
+        covariances, temporal and static sigmas) are read.
+
+        Returns
+        -------
+        mask : ndarray of bool, shape (H, W)
+        z_true_m : ndarray, shape (H, W), float64
+            The rendered true z-depth [m] of every pixel (NaN where the target is not hit).
+        """
+        g = self.geometry
+        z_true_m, _ = g.render()
+        m = (g.regions() == REGION_INTERIOR) & np.isfinite(z_true_m) & (z_true_m < max_depth_m)
+        if self.mask is not None:
+            m &= self.mask
+        return m, z_true_m
+
     def has_data(self) -> np.ndarray:
         """bool (F, H, W): True where a frame has a depth."""
         if self._units is not None:

@@ -38,8 +38,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .diagnosis.direct import _interior
-from .effect_fits.correlation import _fit_gaussian_cov, _lag_cov, _static_lag_cov
+from .effect_fits.correlation import fit_gaussian_cov, lag_cov, static_lag_cov
 
 __all__ = ["FRAME_ERROR_LAGS", "MIN_LAG1_CORRELATION", "MIN_FRAMES", "MAX_RATIO", "capture_frame_error",
            "pooled_frame_error"]
@@ -75,7 +74,7 @@ def capture_frame_error(c) -> dict:
     row = {"id": c.id, "distance_m": float(g.distance_m), "temporal_var_d_px2": nan, "static_var_d_px2": nan,
            "ratio": nan, "rho": [nan] * len(FRAME_ERROR_LAGS), "length_px": nan, "reason": None}
     F = c.n_frames
-    m, z = _interior(c)
+    m, z = c.interior()
     fb = g.fb_px_m
     if m.any():                 # the interior's bounding box: the lag sums need nothing outside it
         rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
@@ -94,9 +93,9 @@ def capture_frame_error(c) -> dict:
     dev -= dev.mean(axis=1)[:, None]
     x = np.zeros((F,) + ok.shape)
     x[:, ok] = dev
-    T, _ = _lag_cov(x, ok, FRAME_ERROR_LAGS)
+    T, _ = lag_cov(x, ok, FRAME_ERROR_LAGS)
     T = T * F / (F - 1)
-    S = _static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), FRAME_ERROR_LAGS)
+    S = static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), FRAME_ERROR_LAGS)
     S = np.zeros_like(T) if S is None else S[0]
     if not S[0] > 0.0:                      # no static part measurable: none
         S = np.zeros_like(T)
@@ -114,7 +113,7 @@ def capture_frame_error(c) -> dict:
     if rho[1] < MIN_LAG1_CORRELATION:
         row["length_px"] = 0.0
     else:
-        _, ell = _fit_gaussian_cov(np.array(FRAME_ERROR_LAGS[1:], dtype=float), rho[1:], lmin=0.3, lmax=80.0)
+        _, ell = fit_gaussian_cov(np.array(FRAME_ERROR_LAGS[1:], dtype=float), rho[1:], lmin=0.3, lmax=80.0)
         row["length_px"] = float(ell)
     return row
 

@@ -101,6 +101,20 @@ def test_board_regions():
     assert not (nb == cd.REGION_BACKGROUND).any() and (nb == cd.REGION_NONE).any()
 
 
+def test_interior_is_the_interior_region_inside_the_mask():
+    g = CaptureGeometry.from_capture_set_entry(CAMERA, dict(BOARD, target=dict(BOARD["target"], distance_m=1.5,
+                                                                               yaw_deg=0.0)))
+    c = CaptureData.from_units(g, np.full((1, 240, 424), 1500, dtype=np.uint16))
+    m, z = c.interior()
+    assert np.array_equal(m, g.regions() == cd.REGION_INTERIOR)      # the 3 m background is never interior
+    assert np.isclose(z[120, 200], 1.5) and np.isclose(z[120, 50], 3.0) and not m[120, 50] and m[120, 200]
+    mask = np.zeros((240, 424), dtype=bool)
+    mask[100:140, 195:225] = True                                       # inside the board, off its edge zones
+    mi, _ = CaptureData.from_units(g, c.has_data().astype(np.uint16) * 1500, mask=mask).interior()
+    assert np.array_equal(mi, m & mask) and mi.sum() == 40 * 30
+    assert not c.interior(max_depth_m=1.0)[0].any()                   # every true depth is beyond 1 m
+
+
 def test_capture_data_from_units():
     g = CaptureGeometry.from_capture_set_entry(CAMERA, WALL)
     units = np.full((2, 240, 424), 1000, dtype=np.uint16)

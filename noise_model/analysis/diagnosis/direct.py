@@ -38,7 +38,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ..capture_data import REGION_INTERIOR, REGION_LEFT_BAND
-from ..effect_fits.correlation import _STATIC_NOISE_LAGS, _fit_gaussian_cov, _lag_cov, _static_lag_cov
+from ..effect_fits.correlation import _STATIC_NOISE_LAGS, fit_gaussian_cov, lag_cov, static_lag_cov
 
 __all__ = ["capture_measurements", "direct_measurements", "check_fitted", "TOLERANCE"]
 
@@ -47,21 +47,11 @@ TOLERANCE = 0.25
 _LAGS = _STATIC_NOISE_LAGS
 
 
-def _interior(c):
-    g = c.geometry
-    z, _ = g.render()
-    reg = g.regions()
-    m = (reg == REGION_INTERIOR) & np.isfinite(z) & (z < 10.0)
-    if c.mask is not None:
-        m &= c.mask
-    return m, z
-
-
 def _length(cov):
     """Gaussian correlation length [px] of a lag covariance over :data:`_LAGS` (lag 0 first)."""
     if not (np.all(np.isfinite(cov)) and cov[0] > 0):
         return float("nan")
-    _, ell = _fit_gaussian_cov(np.array(_LAGS[1:]), cov[1:] / cov[0], lmin=0.3, lmax=80.0)
+    _, ell = fit_gaussian_cov(np.array(_LAGS[1:]), cov[1:] / cov[0], lmin=0.3, lmax=80.0)
     return float(ell)
 
 
@@ -78,7 +68,7 @@ def capture_measurements(c) -> dict:
     """
     g = c.geometry
     fb = g.fb_px_m
-    m, z = _interior(c)
+    m, z = c.interior()
     nan = float("nan")
     row = {"id": c.id, "kind": g.kind, "distance_m": float(g.distance_m),
            "angle_deg": float(math.degrees(math.acos(min(1.0, abs(math.cos(math.radians(g.yaw_deg))
@@ -97,13 +87,13 @@ def capture_measurements(c) -> dict:
         offset = dev.mean(axis=1)
         row["frame_offset_px"] = float(np.sqrt(np.sum(offset ** 2) / (F - 1)))
         dev = dev - offset[:, None]
-        S = _static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), _LAGS)
+        S = static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), _LAGS)
         if S is not None:
             row["static_sigma_d_px"] = float(math.sqrt(max(S[0][0], 0.0)))
             row["static_length_px"] = _length(S[0])
         x = np.zeros((F,) + ok.shape)
         x[:, ok] = dev
-        cov, _ = _lag_cov(x, ok, _LAGS)
+        cov, _ = lag_cov(x, ok, _LAGS)
         row["temporal_length_px"] = _length(cov)
     vals = d[:, m]
     vals = np.unique(np.round(vals[np.isfinite(vals)], 6))

@@ -1,7 +1,7 @@
 """Fits of the correlated effects: ``correlated_noise``, ``static_pattern``, ``static_noise``.
 
 Both fit A exp(-h^2 / (2 l^2)) to the excess (real minus base) lag covariance of a residual
-(:func:`_fit_gaussian_cov`): correlated_noise that of the per-frame residual about the temporal mean
+(:func:`fit_gaussian_cov`): correlated_noise that of the per-frame residual about the temporal mean
 (which removes everything static), static_pattern that of the temporal-mean residual (which keeps only
 what is static). On single frames both read the frame's residual about its best plane, and cannot tell
 one from the other.
@@ -19,7 +19,7 @@ from .spec import FitSpec
 
 
 # ---- lag covariances ------------------------------------------------------------------------------
-def _lag_cov(x, mask, lags):
+def lag_cov(x, mask, lags):
     """Mean of x_p x_{p+h} over frames and over pixel pairs h apart (rows and columns) both in mask and
     finite in x (F, H, W); returns (cov (len(lags),), n_pairs).
 
@@ -48,7 +48,7 @@ def _lag_cov(x, mask, lags):
     return np.array(cov), np.array(npairs)
 
 
-def _fit_gaussian_cov(lags, excess, weights=None, lmin=0.3, lmax=60.0):
+def fit_gaussian_cov(lags, excess, weights=None, lmin=0.3, lmax=60.0):
     """A exp(-h^2 / (2 l^2)) fitted to excess covariances (grid in l, A in closed form, A >= 0)."""
     lags = np.asarray(lags, dtype=float)
     w = np.ones_like(lags) if weights is None else np.asarray(weights, dtype=float)
@@ -69,7 +69,7 @@ _CORR_FRAMES = 6
 
 
 def _lag_cov_masked(x, w, lags):
-    """:func:`_lag_cov` for x (F, H, W) that is 0 where the weights w (F, H, W) (0/1, float32) are 0."""
+    """:func:`lag_cov` for x (F, H, W) that is 0 where the weights w (F, H, W) (0/1, float32) are 0."""
     cov, npairs = [], []
     for h in lags:
         if h == 0:
@@ -143,7 +143,7 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
     (:func:`_remove_frame_offset`): a per-frame offset (``frame_offset``) is a correlation of infinite
     length, which the field's length would otherwise stretch to take. The
     real-minus-base covariances at lags 0-11 px (rows and columns), divided by (1 - 1/F) and pooled
-    over captures by pair counts, give f^2 and l (:func:`_fit_gaussian_cov`) from lags 1-11: lag 0 also
+    over captures by pair counts, give f^2 and l (:func:`fit_gaussian_cov`) from lags 1-11: lag 0 also
     holds any white excess (disparity_noise, or a white axial noise in the base larger or smaller than
     the real one, as an ``axial_refit`` fitted before this effect was in the model is), which would
     otherwise flatten or sharpen the field's fitted shape.
@@ -191,7 +191,7 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
                          "every frame")
     # lag 0 holds any white excess too (a refitted or extra white noise): the field is fitted on lags >= 1
     lags, exc = np.array(_CORR_LAGS)[1:], (num / den)[1:]
-    A, ell = _fit_gaussian_cov(lags, exc)
+    A, ell = fit_gaussian_cov(lags, exc)
     return {"sigma_z_fraction": float(math.sqrt(max(A, 1e-8))), "length_px": float(ell)}
 
 
@@ -238,11 +238,11 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
 
     Per capture (interior pixels): the temporal mean of d = f B / z minus the true disparity, minus its
     best plane in (u, v) (a depth bias maps a plane's affine disparity to another affine disparity, so
-    it leaves nothing); its lag covariance less the temporal share (:func:`_static_lag_cov`: the
+    it leaves nothing); its lag covariance less the temporal share (:func:`static_lag_cov`: the
     deviations' lag covariance / (F - 1)), so that a temporal noise unlike the base's does not read as
     static. The pattern adds sigma_px^2 rho(h) to it; the base simulation's is subtracted. Captures are
     pooled with weights n / (base temporal-mean variance + current estimate)^2, then sigma_px^2 and the
-    length are fitted (:func:`_fit_gaussian_cov`). The pattern's realisation is
+    length are fitted (:func:`fit_gaussian_cov`). The pattern's realisation is
     not recovered (its ``seed`` is returned as 0).
 
     A capture of one frame: the "temporal mean" is its frame (the residual about its best plane fitted
@@ -261,8 +261,8 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
         with np.errstate(divide="ignore", invalid="ignore"):
             dtrue = fb / z
         if c.n_frames >= 2:
-            sr = _static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
-            sb = _static_lag_cov(b, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
+            sr = static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
+            sb = static_lag_cov(b, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
             rb = _detrended_mean_residual(b, m, fb, dtrue)
             if sr is None or sb is None or rb is None:
                 continue
@@ -274,8 +274,8 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
             if rr is None or rb is None:
                 continue
             single = True
-            cr, n = _lag_cov(rr[None], m, _STATIC_LAGS)
-            cb, _ = _lag_cov(rb[None], m, _STATIC_LAGS)
+            cr, n = lag_cov(rr[None], m, _STATIC_LAGS)
+            cb, _ = lag_cov(rb[None], m, _STATIC_LAGS)
             v0 = cb[0]
         if not (np.all(np.isfinite(cr)) and np.all(np.isfinite(cb))):
             continue
@@ -289,7 +289,7 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
     for _ in range(3):
         num = sum(n * e / (v0 + A) ** 2 for e, n, v0 in rows)
         den = sum(n / (v0 + A) ** 2 for e, n, v0 in rows)
-        A, ell = _fit_gaussian_cov(lags[use], (num / den)[use], lmin=0.5, lmax=80.0)
+        A, ell = fit_gaussian_cov(lags[use], (num / den)[use], lmin=0.5, lmax=80.0)
     return {"sigma_px": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
 
 
@@ -297,7 +297,7 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
 _STATIC_NOISE_LAGS = (0, 1, 2, 3, 4, 6, 8, 11, 15, 20, 26, 34, 44)
 
 
-def _static_lag_cov(c, m, fb, dtrue, scale, lags):
+def static_lag_cov(c, m, fb, dtrue, scale, lags):
     """The static part's lag covariance of the disparity residual in units of ``scale``, told apart from
     the temporal part's share of the temporal mean.
 
@@ -335,8 +335,8 @@ def _static_lag_cov(c, m, fb, dtrue, scale, lags):
     rm[vv, uu] = x_mean
     rd = np.zeros((F,) + ok.shape)
     rd[:, vv, uu] = x_dev
-    cm, n = _lag_cov(rm[None], km, lags)
-    cd, _ = _lag_cov(rd, km, lags)
+    cm, n = lag_cov(rm[None], km, lags)
+    cd, _ = lag_cov(rd, km, lags)
     return cm - cd / (F - 1), n
 
 
@@ -346,11 +346,11 @@ def _fit_static_noise(real, base, model, rois=None, base_effects=(), **_):
     Per capture (interior pixels): sigma_d = sigma_z(z_true, theta) f B / z_true^2, the base's axial noise
     in disparity (the refitted one when ``base_effects`` hold an ``axial_refit``, :func:`_base_sigma_model`,
     which the field then scales with); the static part's lag covariance of the residual over sigma_d, told apart from the
-    temporal noise left in the temporal mean (:func:`_static_lag_cov`), so that neither a different
+    temporal noise left in the temporal mean (:func:`static_lag_cov`), so that neither a different
     temporal level nor a temporal correlation reads as static with few frames. The field adds
     sigma_z_fraction^2 rho(h) to it; the base simulation's is subtracted (it holds what the effects
     already selected make static). Pooled over captures by pair counts, fitted with
-    :func:`_fit_gaussian_cov`. The field's realisation is not recovered (``seed`` 0).
+    :func:`fit_gaussian_cov`. The field's realisation is not recovered (``seed`` 0).
 
     A capture of one frame cannot tell the static part from the temporal one: its residual about the
     target's best plane, over sigma_d, is read as static, and lag 0 is left out of the fit (white
@@ -368,8 +368,8 @@ def _fit_static_noise(real, base, model, rois=None, base_effects=(), **_):
                                                    _base_sigma_model(model, base_effects, g))
                           * fb / np.where(m, z, 1.0) ** 2, 1.0)
         if c.n_frames >= 2:
-            sr = _static_lag_cov(c, m, fb, dtrue, sd, _STATIC_NOISE_LAGS)
-            sb = _static_lag_cov(b, m, fb, dtrue, sd, _STATIC_NOISE_LAGS)
+            sr = static_lag_cov(c, m, fb, dtrue, sd, _STATIC_NOISE_LAGS)
+            sb = static_lag_cov(b, m, fb, dtrue, sd, _STATIC_NOISE_LAGS)
             if sr is None or sb is None:
                 continue
             (cr, n), (cb, _) = sr, sb
@@ -378,8 +378,8 @@ def _fit_static_noise(real, base, model, rois=None, base_effects=(), **_):
             rb = _single_frame_residual(b, m, fb)
             if rr is None or rb is None:
                 continue
-            cr, n = _lag_cov((rr / sd)[None], m, _STATIC_NOISE_LAGS)
-            cb, _ = _lag_cov((rb / sd)[None], m, _STATIC_NOISE_LAGS)
+            cr, n = lag_cov((rr / sd)[None], m, _STATIC_NOISE_LAGS)
+            cb, _ = lag_cov((rb / sd)[None], m, _STATIC_NOISE_LAGS)
             single = True
         ok = np.isfinite(cr) & np.isfinite(cb)
         num[ok] += n[ok] * (cr[ok] - cb[ok])
@@ -389,7 +389,7 @@ def _fit_static_noise(real, base, model, rois=None, base_effects=(), **_):
     lags, exc = np.array(_STATIC_NOISE_LAGS), num / den
     if single:
         lags, exc = lags[1:], exc[1:]
-    A, ell = _fit_gaussian_cov(lags, exc, lmin=0.5, lmax=80.0)
+    A, ell = fit_gaussian_cov(lags, exc, lmin=0.5, lmax=80.0)
     return {"sigma_z_fraction": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
 
 
