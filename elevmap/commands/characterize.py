@@ -38,8 +38,8 @@ from noise_model.d435 import D435
 from noise_model.reporting import check_names
 
 from ..fileio import check_outputs, json_ready, write_json_atomic
-from .characterize_models import (fit_families, fit_frame_noise, measure_frame_error, predict_capture_set,
-                                  with_frame_error)
+from .characterize_models import (fit_families, fit_frame_noise, frame_error_report, frame_error_row,
+                                  predict_capture_set, with_frame_error)
 from .protocol import PROTOCOL  # the recording protocol (also in ``elevmap characterize --help``)
 
 __all__ = ["run_characterize", "characterize_capture", "format_summary", "figure_series", "plane_distance_panels",
@@ -245,7 +245,8 @@ def _given_region(ref, mask) -> _GivenRegion:
     return _GivenRegion(region)
 
 
-def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: int = DETECTION_FRAMES) -> dict:
+def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: int = DETECTION_FRAMES,
+                         depth=None) -> dict:
     """Measure one capture of a capture set.
 
     Parameters
@@ -255,6 +256,9 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
     keep_image : bool
         Also return the per-pixel distance of the frames' mean to the fitted plane (Fig. 4) as
         ``_plane_distance_image`` (float32 (H, W) [m], NaN off the target).
+    depth : ndarray, optional
+        The capture's frames as ``cs.load_depth(cap.id)`` gives them (a caller that has read them
+        already); read from the set when omitted.
 
     Returns
     -------
@@ -281,7 +285,7 @@ def characterize_capture(cs, cap, keep_image: bool = False, detection_frames: in
     K = np.array([[float(cam["fx"]), 0.0, float(cam["ppx"])], [0.0, float(cam["fy"]), float(cam["ppy"])],
                   [0.0, 0.0, 1.0]])
     scale = float(cam["depth_scale"])
-    depth = cs.load_depth(cap.id)
+    depth = cs.load_depth(cap.id) if depth is None else depth
     N, H, W = depth.shape
     ref = _median_image(depth, scale, detection_frames)
     mask = cs.load_mask(cap.id)
@@ -541,17 +545,19 @@ def run_characterize(captures_dir, json_path=None, rrd_path=None, figures_dir=No
         selected = [c for c in cs.captures if c.id in ids]
 
     keep_images = rrd_path is not None or figures_dir is not None or spawn
-    records, failures = [], []
+    records, failures, fe_rows, fe_skipped = [], [], [], []
     for cap in tqdm(selected, desc="characterize", unit="capture", disable=not show_progress):
-        rec = characterize_capture(cs, cap, keep_image=keep_images)
+        depth = cs.load_depth(cap.id)           # read once: the record and the per-frame error share it
+        rec = characterize_capture(cs, cap, keep_image=keep_images, depth=depth)
         if "failed" in rec:
             failures.append({"id": rec["id"], "reason": rec["failed"]})
-        else:
-            records.append(rec)
+            continue
+        records.append(rec)
+        row, skip = frame_error_row(cs, cap, depth)
+        (fe_rows if skip is None else fe_skipped).append(row if skip is None else skip)
 
     fit_d, fit_reason, fit, fam = fit_families(records, cs.camera, MAX_REL_NOISE)
-    done = {r["id"] for r in records}
-    frame_error = measure_frame_error(cs, [c for c in selected if c.id in done])
+    frame_error = frame_error_report(cs, fe_rows, fe_skipped)
     lat_l, lat_r = _lateral_summary(records, "left"), _lateral_summary(records, "right")
     report = {
         "format": REPORT_FORMAT,

@@ -19,7 +19,7 @@ import noise_model as nm
 from noise_model.analysis import characterization as ch, family_fit as ff
 from noise_model.d435 import D435
 
-__all__ = ["fit_families", "predict_capture_set", "PREDICTION_FACTOR", "measure_frame_error", "fit_frame_noise",
+__all__ = ["fit_families", "predict_capture_set", "PREDICTION_FACTOR", "measure_frame_error", "frame_error_row", "frame_error_report", "fit_frame_noise",
            "with_frame_error"]
 
 #: The fit's comparison grid: the paper's distances and angles.
@@ -188,7 +188,7 @@ def predict_capture_set(other, measured, model, fit, dfit, camera: dict) -> dict
     return out
 
 
-def measure_frame_error(cs, caps) -> dict:
+def measure_frame_error(cs, caps, depths=None) -> dict:
     """The per-frame error of the capture set's captures ``caps`` and its pooled figures
     (:mod:`noise_model.analysis.frame_error`).
 
@@ -197,29 +197,50 @@ def measure_frame_error(cs, caps) -> dict:
     are measured (the static part is taken about the best plane of the frames' mean, which a fitted
     geometry gives as well as a measured one).
 
+    Parameters
+    ----------
+    cs : elevmap.sources.captures.CaptureSet
+    caps : sequence of elevmap.sources.captures.Capture
+    depths : iterable of ndarray, optional
+        Each capture's frames as :meth:`CaptureSet.load_depth` gives them, in the order of ``caps``
+        (a caller that has read them already); read from the set when omitted.
+
     Returns
     -------
     dict
         ``pooled`` (:func:`noise_model.analysis.frame_error.pooled_frame_error`), ``fx_px`` (the stream's
         focal length), ``captures`` (rows), ``skipped`` (``id`` and ``reason``), ``method``.
     """
-    from noise_model.analysis.capture_data import CaptureData
-    from noise_model.analysis.frame_error import capture_frame_error, pooled_frame_error
-
     rows, skipped = [], []
-    for cap in caps:
-        camera = cs.camera_for(cap.id) if cap.is_recording else cs.camera
-        try:
-            c = CaptureData.from_capture_entry(camera, cap.to_dict(), np.asarray(cs.load_depth(cap.id)),
-                                               cs.load_mask(cap.id))
-        except ValueError as exc:
-            skipped.append({"id": cap.id, "reason": str(exc)})
-            continue
-        row = capture_frame_error(c)
-        if row["reason"] is not None:
-            skipped.append({"id": cap.id, "reason": row["reason"]})
-        else:
-            rows.append(row)
+    depths = (cs.load_depth(cap.id) for cap in caps) if depths is None else depths
+    for cap, depth in zip(caps, depths):
+        row, skip = frame_error_row(cs, cap, depth)
+        (rows if skip is None else skipped).append(row if skip is None else skip)
+    return frame_error_report(cs, rows, skipped)
+
+
+def frame_error_row(cs, cap, depth) -> tuple[dict | None, dict | None]:
+    """One capture's per-frame error (:func:`noise_model.analysis.frame_error.capture_frame_error`) from its
+    frames ``depth`` (depth units (F, H, W), as :meth:`CaptureSet.load_depth` gives them): (row, None), or
+    (None, ``{"id", "reason"}``) when the capture cannot be measured."""
+    from noise_model.analysis.capture_data import CaptureData
+    from noise_model.analysis.frame_error import capture_frame_error
+
+    camera = cs.camera_for(cap.id) if cap.is_recording else cs.camera
+    try:
+        c = CaptureData.from_capture_entry(camera, cap.to_dict(), np.asarray(depth), cs.load_mask(cap.id))
+    except ValueError as exc:
+        return None, {"id": cap.id, "reason": str(exc)}
+    row = capture_frame_error(c)
+    if row["reason"] is not None:
+        return None, {"id": cap.id, "reason": row["reason"]}
+    return row, None
+
+
+def frame_error_report(cs, rows, skipped) -> dict:
+    """The report of :func:`measure_frame_error` from its per-capture ``rows`` and ``skipped`` entries."""
+    from noise_model.analysis.frame_error import pooled_frame_error
+
     return {"pooled": pooled_frame_error(rows), "fx_px": float(cs.camera["fx"]), "captures": rows,
             "skipped": skipped,
             "method": "per capture, the disparity error's temporal lag covariance (frame-wide offset removed) "

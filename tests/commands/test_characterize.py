@@ -459,6 +459,12 @@ def test_a_static_error_pattern_is_measured_and_carried_by_the_model_file(tmp_pa
     rep = run_characterize(tmp_path, json_path=tmp_path / "r.json", show_progress=False)
     fe = rep["frame_error"]["pooled"]
     assert fe["n_captures"] == 6
+    # measured on the frames the records read, the same as measuring the set on its own
+    from elevmap.commands.characterize_models import measure_frame_error
+    from elevmap.sources.captures import read_capture_set
+    cs = read_capture_set(tmp_path)
+    alone = json.loads(json.dumps(measure_frame_error(cs, cs.captures), default=float))
+    assert alone == {k: v for k, v in json.loads(json.dumps(rep["frame_error"], default=float)).items() if k in alone}
     assert fe["frame_variance_ratio"] == pytest.approx(2.0, rel=0.15)
     assert fe["error_correlation_px"] == pytest.approx(4.0, rel=0.2)
     doc = json.loads((tmp_path / "r.model.json").read_text())
