@@ -192,10 +192,10 @@ def measure_frame_error(cs, caps, depths=None) -> dict:
     """The per-frame error of the capture set's captures ``caps`` and its pooled figures
     (:mod:`noise_model.analysis.frame_error`).
 
-    A capture the gap's geometry cannot render (a ``plane`` target, e.g. a floor seen through a mask) is
-    left out with its reason: its static error has no surface to be told from. Captures of fitted geometry
-    are measured (the static part is taken about the best plane of the frames' mean, which a fitted
-    geometry gives as well as a measured one).
+    A capture that cannot be measured (too few frames, not its plane) is left out with its reason. A
+    ``plane`` target (a fitted plane seen through its mask) is measured as the wall of that plane; captures
+    of fitted geometry are measured like measured ones (the static part is taken about the best plane of
+    the frames' mean, which a fitted geometry gives as well as a measured one).
 
     Parameters
     ----------
