@@ -76,9 +76,9 @@ variance the gate uses and the weight's tau^2) is read from the layers once per 
 grid first meets the cell in a frame, and kept beside its sums.
 
 The kernel checks each point's values in the same pass (:func:`elevmap.map.settings.check_point_values`
-is its NumPy reference), a block of points at a time just before it sums them: the pass writes only the
-partial grids, so a frame with a bad point leaves the map as it was, and the check costs a few vectorised
-comparisons per point instead of several passes over the arrays.
+is its NumPy reference), as it loads them: the pass writes only the partial grids, so a frame with a bad
+point leaves the map as it was, and the check costs a few comparisons per point instead of several passes
+over the arrays.
 :func:`fuse_frame_reference` computes the same update with NumPy (bincount); the tests hold the two
 equal.
 """
@@ -542,36 +542,30 @@ def _open_cell(data, acc, acc_stamp, p, c, bi, bj, fid):
         a[PR_T2] = _weight_tau2(data, bi, bj)
 
 
-#: Points checked at a time, just before the pass sums them (a block's values are then in the cache).
+#: Horizontal covariances checked at a time, just before the pass sums their points (a block's values are then in
+#: the cache).
 CHECK_BLOCK = 256
 
 
 @njit(**JIT)
-def _count_bad(x, y, z, var, hx, hxy, hy, has_h, k0, k1):
-    """Number of the points k0..k1-1 whose values fail the check: coordinates within MAX_COORDINATE_M,
-    MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE, horizontal covariance finite with xx, yy >= 0 (NaN
-    fails every comparison). Loops without branches (& rather than and), which the compiler vectorises."""
+def _count_bad_hcov(hx, hxy, hy, k0, k1):
+    """Number of the points k0..k1-1 whose horizontal covariance fails the check: finite, with xx, yy >= 0
+    (NaN fails every comparison). A loop without branches (& rather than and), which the compiler vectorises."""
     inf = np.inf
     bad = 0
     for k in range(k0, k1):
-        ok = ((abs(x[k]) <= MAX_COORDINATE_M) & (abs(y[k]) <= MAX_COORDINATE_M) & (abs(z[k]) <= MAX_COORDINATE_M)
-              & (var[k] >= MIN_HEIGHT_VARIANCE) & (var[k] <= MAX_POINT_VARIANCE))
+        h0 = hx[k]
+        h2 = hy[k]
+        ok = (h0 >= 0.0) & (h0 < inf) & (h2 >= 0.0) & (h2 < inf) & (abs(hxy[k]) < inf)
         bad += not ok
-    if has_h:
-        for k in range(k0, k1):
-            h0 = hx[k]
-            h2 = hy[k]
-            ok = (h0 >= 0.0) & (h0 < inf) & (h2 >= 0.0) & (h2 < inf) & (abs(hxy[k]) < inf)
-            bad += not ok
     return bad
 
 
 @njit(parallel=True, **JIT)
 def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, params, acc, acc_stamp, fid, check, box,
                        low_margin, T):
-    """Pass 1, per partial grid over its fixed range of points: check the points' values (``check``; a
-    block of CHECK_BLOCK points at a time, just before they are summed), gate each point against its
-    cell's prior and sum it into the cell's partial grid. Writes only ``acc``, ``acc_stamp`` and ``box``
+    """Pass 1, per partial grid over its fixed range of points: check the points' values (``check``), gate
+    each point against its cell's prior and sum it into the cell's partial grid. Writes only ``acc``, ``acc_stamp`` and ``box``
     (per partial: points that failed the check, first and last map row and column reached): a point that
     fails the check is summed too (its sums are garbage), and the caller then raises before anything
     reaches the map. With ``low_margin`` >= 0 it also keeps each cell's lowest ray end for the
@@ -582,7 +576,15 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
     fixed by the points' order, so the result does not depend on the thread count), and a point well
     inside the previous point's cell skips the divisions of floor(x / res) (the same cell, exactly).
     The partial grids are dealt to the T threads interleaved (:func:`elevmap.map.neighbours.interleaved`):
-    a depth image's far rows come first and cost more per point (shorter runs)."""
+    a depth image's far rows come first and cost more per point (shorter runs).
+
+    The check (:func:`elevmap.map.settings.check_point_values`: coordinates within MAX_COORDINATE_M,
+    MIN_HEIGHT_VARIANCE <= v <= MAX_POINT_VARIANCE, horizontal covariance finite with xx, yy >= 0) costs a
+    few branch-free comparisons per point on values the pass loads anyway: z and v of every point; x and y
+    only of the points outside the window, because a point inside it lies within the window's bounds, which
+    are within MAX_COORDINATE_M unless the map lies at its edge (then every point's x and y are compared).
+    NaN fails every comparison. The horizontal covariances are checked a block of CHECK_BLOCK points at a
+    time, just before the pass sums them."""
     n = data.shape[1]
     P = acc.shape[0]
     N = x.shape[0]
@@ -590,6 +592,12 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
     sx = gx0 % n
     sy = gy0 % n
     inf = np.inf
+    big = MAX_COORDINATE_M
+    # a point whose cell lies in the window has |x|, |y| below the window's farthest edge (one cell of
+    # margin for the rounding of x / res); within MAX_COORDINATE_M, the check need not compare them
+    edge = (max(abs(gx0), abs(gx0 + n), abs(gy0), abs(gy0 + n)) + 1.0) * res * (1.0 + 1e-9)
+    check_xy = check and not edge <= big
+    check_h = check and has_h
     for qp in prange(P):
         p = interleaved(qp, P, T)
         a0 = b0 = n
@@ -609,13 +617,17 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
         for k in range((N * p) // P, end + 1):
             last = k == end
             if not last:
-                if check and k >= next_check:
+                if check_h and k >= next_check:
                     next_check = min(k + CHECK_BLOCK, end)
-                    nbad += _count_bad(x, y, z, var, hx, hxy, hy, has_h, k, next_check)
+                    nbad += _count_bad_hcov(hx, hxy, hy, k, next_check)
                 xk = x[k]
                 yk = y[k]
                 zk = z[k]
                 vk = var[k]
+                if check:
+                    nbad += not ((abs(zk) <= big) & (vk >= MIN_HEIGHT_VARIANCE) & (vk <= MAX_POINT_VARIANCE))
+                    if check_xy:
+                        nbad += not ((abs(xk) <= big) & (abs(yk) <= big))
                 # the cell of the previous point when this one lies inside that cell's interior shrunk by a
                 # relative 1e-9 (floor(x / res) cannot round across a border there: the division's rounding
                 # error is ~1e-16 of x / res); else floor(x / res) as everywhere else in the map
@@ -623,6 +635,8 @@ def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, pa
                     fi = math.floor(xk / res) - gx0
                     fj = math.floor(yk / res) - gy0
                     if not (fi >= 0.0 and fi < n and fj >= 0.0 and fj < n):
+                        if check and not check_xy:      # outside the window (NaN and inf land here too)
+                            nbad += not ((abs(xk) <= big) & (abs(yk) <= big))
                         continue
                     i = int(fi)
                     j = int(fj)

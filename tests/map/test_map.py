@@ -295,6 +295,40 @@ def test_a_bad_horizontal_covariance_is_refused_inside_or_outside_the_window(imp
     m.update(pts, np.ones(3), stamp=1.0, horizontal_cov=hcov, impl=impl)
 
 
+@pytest.mark.parametrize("impl", ["numba", "numpy"])
+@pytest.mark.parametrize("bad", [(0, np.nan), (1, np.inf), (2, -np.inf), (2, 2e9), (3, 1e-30), (3, 1e6), (3, np.nan)])
+@pytest.mark.parametrize("xy", [(0.5, 0.5), (50.0, -70.0)])
+def test_a_bad_point_value_is_refused_inside_or_outside_the_window(impl, bad, xy):
+    """x, y, z or the variance out of range (column 3: the variance) in a point that lies in the window or
+    outside it: the update is refused and the map is left as it was."""
+    m = small_map()
+    pts = np.array([[0.2, 0.3, 1.0], [xy[0], xy[1], 2.0], [1.5, -0.5, 0.0]])
+    var = np.ones(3)
+    m.update(pts, var, impl=impl)
+    before = m.data.copy()
+    if bad[0] == 3:
+        var[1] = bad[1]
+    else:
+        pts[1, bad[0]] = bad[1]
+    with pytest.raises(ValueError, match="points_map|height_var"):
+        m.update(pts, var, stamp=1.0, impl=impl)
+    np.testing.assert_array_equal(m.data, before)
+
+
+@pytest.mark.parametrize("impl", ["numba", "numpy"])
+def test_a_point_beyond_the_coordinate_limit_is_refused_in_a_window_that_reaches_past_it(impl):
+    """A map centred 1 m inside MAX_COORDINATE_M reaches past it: a point in its window beyond the limit
+    is refused, one within it is fused."""
+    from elevmap.map.settings import MAX_COORDINATE_M
+
+    c = MAX_COORDINATE_M - 1.0
+    m = ElevationMap(length_m=8.0, resolution_m=1.0, centre_xy=(c, 0.0))
+    with pytest.raises(ValueError, match="points_map"):
+        m.update(np.array([[c + 2.5, 0.5, 0.1]]), np.ones(1), impl=impl)
+    assert m.frames == 0 and not m.is_known().any()
+    assert m.update(np.array([[c + 0.5, 0.5, 0.1]]), np.ones(1), impl=impl)["cells_updated"] == 1
+
+
 finite = st.floats(-3.0, 3.0, allow_nan=False)
 
 
