@@ -41,8 +41,8 @@ that disagreement. The fusion's gate and prior work on the variance without it
 the weights of later points only.
 
 The window sums are separable (along the rows, then down the columns); heights enter them relative to
-the mean height of the map's known cells (sampled every 8th row and column), so that the sums stay well
-conditioned however high the map lies. Cells with a non-finite or non-positive P contribute nothing.
+the mean height of the known cells of the cells' windows (sampled every 8th row and column), so that the
+sums stay well conditioned however high the map lies. Cells with a non-finite or non-positive P contribute nothing.
 Only the window of cells touched by a frame (plus ``radius``) is recomputed: the others'
 neighbourhoods did not change. :func:`update_neighbour_spread_reference` computes the same thing with
 NumPy (the same sums in the same order, the same Newton steps); the tests hold the two equal.
@@ -277,52 +277,76 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel, T
     Paule-Mandel's first evaluation runs for a row's cells side by side (:func:`_paule_mandel_row`); the
     few cells it does not settle continue one by one. Each cell writes only itself (pass B reads only A,
     pass A's copies of the heights and P, and its own layers): race-free, and the same whatever the thread
-    count. Rows are shared among the T threads interleaved (:func:`interleaved`)."""
+    count. Rows are shared among the T threads interleaved (thread m takes rows m, m + T, ...: see
+    :func:`interleaved`), each thread with its own scratch rows.
+
+    Only the span of each row between its first and last counting cell is summed (pass A: the columns
+    whose windows reach the span; pass B: the span of the row's own cells, the only ones it writes): the
+    frame's cells fill a camera's view, a trapezoid that covers a fraction of its bounding box. The sums
+    left out are sums of zeros, so the result is the same as over the whole box, bit for bit (a sum that
+    starts at +0 and adds +0 stays the same). The loops that the compiler vectorises run over slices from
+    index 0."""
     n = data.shape[1]
     r = radius
     C = j1 - j0 + 1
-    R = i1 - i0 + 1 + 2 * r                # padded rows of A: map rows i0 - r .. i1 + r
+    W = C + 2 * r                            # padded columns: map columns j0 - r .. j1 + r
+    R = i1 - i0 + 1 + 2 * r                  # padded rows of A: map rows i0 - r .. i1 + r
     A = np.zeros((5, R, C))
-    Hl = np.zeros((R, C + 2 * r))            # the heights and P of the padded window, read by the
-    Pl = np.full((R, C + 2 * r), np.inf)     # Paule-Mandel solve (P = inf: the cell does not count)
-    for qi in prange(R):
-        ii = interleaved(qi, R, T)
-        i = i0 - r + ii
-        if i < 0 or i >= n:
-            continue                         # beyond the map: zero
-        bi = i + sx
-        if bi >= n:
-            bi -= n
-        q = np.zeros((5, C + 2 * r))         # map columns j0 - r .. j1 + r
-        for c in range(C + 2 * r):
-            j = j0 - r + c
-            if j < 0 or j >= n:
+    Hl = np.zeros((R, W))                    # the heights and P of the padded window, read by the
+    Pl = np.full((R, W), np.inf)             # Paule-Mandel solve (P = inf: the cell does not count)
+    span = np.empty((R, 2), dtype=np.int64)  # each padded row's first and last counting column (first > last: none)
+    for m in prange(T):
+        q = np.zeros((5, W))
+        for ii in range(m, R, T):
+            span[ii, 0] = W
+            span[ii, 1] = -1
+            i = i0 - r + ii
+            if i < 0 or i >= n:
+                continue                     # beyond the map: zero
+            bi = i + sx
+            if bi >= n:
+                bi -= n
+            lo = W
+            hi = -1
+            for c in range(W):
+                j = j0 - r + c
+                if j < 0 or j >= n:
+                    continue
+                bj = j + sy
+                if bj >= n:
+                    bj -= n
+                h, p, _ = _cell(data, bi, bj)
+                if np.isnan(h) or not (p > 0.0 and p < np.inf):
+                    continue
+                w = 1.0 / p
+                d = h - ref
+                q[0, c] = w
+                q[1, c] = w * w
+                q[2, c] = w * d
+                q[3, c] = w * d * d
+                q[4, c] = 1.0
+                Hl[ii, c] = d
+                Pl[ii, c] = p
+                lo = min(lo, c)
+                hi = c
+            span[ii, 0] = lo
+            span[ii, 1] = hi
+            if hi < 0:
                 continue
-            bj = j + sy
-            if bj >= n:
-                bj -= n
-            h, p, _ = _cell(data, bi, bj)
-            if np.isnan(h) or not (p > 0.0 and p < np.inf):
-                continue
-            w = 1.0 / p
-            d = h - ref
-            q[0, c] = w
-            q[1, c] = w * w
-            q[2, c] = w * d
-            q[3, c] = w * d * d
-            q[4, c] = 1.0
-            Hl[ii, c] = d
-            Pl[ii, c] = p
-        for f in range(5):
-            for t in range(2 * r + 1):
-                for c in range(C):
-                    A[f, ii, c] += q[f, c + t]
+            ca = max(lo - 2 * r, 0)          # the columns whose windows reach the span
+            cb = min(hi, C - 1)
+            for f in range(5):
+                Af = A[f, ii, ca:cb + 1]
+                for t in range(2 * r + 1):
+                    qf = q[f, ca + t:cb + 1 + t]
+                    for c in range(cb + 1 - ca):
+                        Af[c] += qf[c]
+                qf = q[f, lo:hi + 1]         # zero again for the thread's next row
+                for c in range(hi + 1 - lo):
+                    qf[c] = 0.0
     L = 2 * r + 1
-    for qi in prange(i1 - i0 + 1):
-        i = i0 + interleaved(qi, i1 - i0 + 1, T)
-        bi = i + sx
-        if bi >= n:
-            bi -= n
+    NR = i1 - i0 + 1
+    for m in prange(T):
         B = np.zeros((5, C))
         hw = np.empty(L * L)
         pw = np.empty(L * L)
@@ -333,57 +357,75 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel, T
         dd = np.empty(C)
         cen = np.zeros(C)                    # each cell's centre for the one-pass sums: its window's mean
         buf = np.empty((6, PM_BLOCK))
-        for t in range(L):
+        for qi in range(m, NR, T):
+            i = i0 + qi
+            bi = i + sx
+            if bi >= n:
+                bi -= n
+            ca = max(span[qi + r, 0] - r, 0)     # the row's counting cells (unpadded columns)
+            cb = min(span[qi + r, 1] - r, C - 1)
+            if ca > cb:
+                continue
+            for t in range(L):
+                for f in range(5):
+                    Bf = B[f, ca:cb + 1]
+                    Af = A[f, qi + t, ca:cb + 1]
+                    for c in range(cb + 1 - ca):
+                        Bf[c] += Af[c]
+            c0 = C
+            c1 = 0
+            for c in range(ca, cb + 1):
+                bj = j0 + c + sy
+                if bj >= n:
+                    bj -= n
+                h0, p0, s = _cell(data, bi, bj)
+                if np.isnan(h0) or not (p0 > 0.0 and p0 < np.inf):
+                    continue
+                s1 = B[0, c]
+                s2 = B[1, c]
+                sh = B[2, c]
+                shh = B[3, c]
+                k = B[4, c]
+                tau2 = 0.0
+                if k >= 2.0:
+                    qd = shh - sh * sh / s1
+                    den = s1 - s2 / s1
+                    if den > 0.0 and qd > k - 1.0:
+                        tau2 = _dersimonian_laird_tau2(qd - (k - 1.0), s1, s2)
+                        if paule_mandel:
+                            prev = data[NEIGHBOUR_SPREAD, bi, bj]        # the last frame's root: a warm start
+                            t0[c] = prev if (prev > 0.0 and prev < np.inf) else tau2
+                            solve[c] = True
+                            c0 = min(c0, c)
+                            c1 = c + 1
+                if not solve[c]:
+                    data[NEIGHBOUR_SPREAD, bi, bj] = tau2
+                    data[VARIANCE, bi, bj] = p0 + max(s, tau2)
+            if c0 < c1:
+                for c in range(c0, c1):
+                    if solve[c]:
+                        cen[c] = B[2, c] / B[0, c]
+                _paule_mandel_row(Hl, Pl, qi, c0, c1, r, t0, cen, qq, dd, buf)
+                for c in range(c0, c1):
+                    if not solve[c]:
+                        continue
+                    bj = j0 + c + sy
+                    if bj >= n:
+                        bj -= n
+                    h0, p0, s = _cell(data, bi, bj)
+                    tau2, lo, hi, done = _paule_mandel_next(qq[c], dd[c], B[4, c] - 1.0, t0[c], 0.0, np.inf)
+                    if not done:
+                        tau2 = _paule_mandel_cell(Hl, Pl, qi, c, r, tau2, hw, pw, ww, lo, hi, PM_MAX_STEPS - 1)
+                    data[NEIGHBOUR_SPREAD, bi, bj] = tau2
+                    data[VARIANCE, bi, bj] = p0 + max(s, tau2)
+                for c in range(c0, c1):      # back to the dummies for the thread's next row
+                    solve[c] = False
+                    t0[c] = 1.0
+                    cen[c] = 0.0
             for f in range(5):
-                for c in range(C):
-                    B[f, c] += A[f, i - i0 + t, c]
-        c0 = C
-        c1 = 0
-        for c in range(C):
-            bj = j0 + c + sy
-            if bj >= n:
-                bj -= n
-            h0, p0, s = _cell(data, bi, bj)
-            if np.isnan(h0) or not (p0 > 0.0 and p0 < np.inf):
-                continue
-            s1 = B[0, c]
-            s2 = B[1, c]
-            sh = B[2, c]
-            shh = B[3, c]
-            k = B[4, c]
-            tau2 = 0.0
-            if k >= 2.0:
-                qd = shh - sh * sh / s1
-                den = s1 - s2 / s1
-                if den > 0.0 and qd > k - 1.0:
-                    tau2 = _dersimonian_laird_tau2(qd - (k - 1.0), s1, s2)
-                    if paule_mandel:
-                        prev = data[NEIGHBOUR_SPREAD, bi, bj]        # the last frame's root: a warm start
-                        t0[c] = prev if (prev > 0.0 and prev < np.inf) else tau2
-                        solve[c] = True
-                        c0 = min(c0, c)
-                        c1 = c + 1
-            if not solve[c]:
-                data[NEIGHBOUR_SPREAD, bi, bj] = tau2
-                data[VARIANCE, bi, bj] = p0 + max(s, tau2)
-        if c0 >= c1:
-            continue
-        for c in range(c0, c1):
-            if solve[c]:
-                cen[c] = B[2, c] / B[0, c]
-        _paule_mandel_row(Hl, Pl, i - i0, c0, c1, r, t0, cen, qq, dd, buf)
-        for c in range(c0, c1):
-            if not solve[c]:
-                continue
-            bj = j0 + c + sy
-            if bj >= n:
-                bj -= n
-            h0, p0, s = _cell(data, bi, bj)
-            tau2, lo, hi, done = _paule_mandel_next(qq[c], dd[c], B[4, c] - 1.0, t0[c], 0.0, np.inf)
-            if not done:
-                tau2 = _paule_mandel_cell(Hl, Pl, i - i0, c, r, tau2, hw, pw, ww, lo, hi, PM_MAX_STEPS - 1)
-            data[NEIGHBOUR_SPREAD, bi, bj] = tau2
-            data[VARIANCE, bi, bj] = p0 + max(s, tau2)
+                Bf = B[f, ca:cb + 1]
+                for c in range(cb + 1 - ca):
+                    Bf[c] = 0.0
 
 
 def _window(geometry, rows, cols, radius):
@@ -432,23 +474,32 @@ def update_neighbour_spread(data, geometry, radius: int = 2, rows=None, cols=Non
     i0, i1, j0, j1 = _window(geometry, rows, cols, radius)
     sx, sy = geometry.start_index
     n = resolve_threads(nthreads)
+    sx, sy = int(sx), int(sy)
+    ref = _reference_height(data, sx, sy, max(i0 - radius, 0), min(i1 + radius, geometry.n - 1),
+                            max(j0 - radius, 0), min(j1 + radius, geometry.n - 1))
     with threads(n):
-        _neighbour_kernel(data, int(sx), int(sy), i0, i1, j0, j1, int(radius), _reference_height(data),
-                          estimator == "paule_mandel", n)
+        _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, int(radius), ref, estimator == "paule_mandel", n)
 
 
 @njit(**JIT)
-def _reference_height(data) -> float:
-    """A height near the map's [m] (the mean of the known cells of every 8th row and column, else of all,
-    0 for an empty map): heights enter the sums relative to it, so that w (h - ref)^2 stays small where
-    the map lies far above its origin."""
+def _reference_height(data, sx, sy, i0, i1, j0, j1) -> float:
+    """A height near the window's [m]: the mean of the known cells of every 8th row and column of map rows
+    i0..i1 and columns j0..j1 (buffer start (sx, sy)), else of all its cells, 0 when none is known. Heights
+    enter the sums relative to it, so that w (h - ref)^2 stays small where the map lies far above its
+    origin; it looks at the window only, so that its cost follows the cells a frame touched, not the map."""
     n = data.shape[1]
     for step in (8, 1):
         s = 0.0
         k = 0
-        for i in range(0, n, step):
-            for j in range(0, n, step):
-                h = data[ELEVATION, i, j]
+        for i in range(i0, i1 + 1, step):
+            bi = i + sx
+            if bi >= n:
+                bi -= n
+            for j in range(j0, j1 + 1, step):
+                bj = j + sy
+                if bj >= n:
+                    bj -= n
+                h = data[ELEVATION, bi, bj]
                 if not np.isnan(h):
                     s += h
                     k += 1
@@ -524,7 +575,9 @@ def update_neighbour_spread_reference(data, geometry, radius: int = 2, rows=None
     i0, i1, j0, j1 = _window(geometry, rows, cols, radius)
     n = geometry.n
     r = radius
-    ref = _reference_height(data)
+    sx, sy = geometry.start_index
+    ref = _reference_height(data, int(sx), int(sy), max(i0 - r, 0), min(i1 + r, n - 1), max(j0 - r, 0),
+                            min(j1 + r, n - 1))
     P = geometry.unwrap(fused_variance(data))
     H = geometry.unwrap(data[ELEVATION])
     ok = ~np.isnan(H) & (P > 0) & (P < np.inf)

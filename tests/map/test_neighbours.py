@@ -242,3 +242,52 @@ def test_numba_equals_reference_on_rows_wider_than_a_block_of_solves(radius):
         np.testing.assert_array_equal(results[0], results[1])
         np.testing.assert_allclose(results[0], b, rtol=1e-9, atol=1e-15, equal_nan=True)
         assert (results[0][NEIGHBOUR_SPREAD] > 0).sum() > 2 * n
+
+
+def test_a_camera_view_of_known_cells_equals_the_reference_with_one_and_two_threads():
+    """Known cells in a trapezoid (a camera's view), with holes and rows without a known cell, inside a
+    wrapped window that reaches the map's edge: the kernel sums each row's span of counting cells only,
+    the reference the whole window; the results agree, and 1 and 2 threads bit for bit."""
+    rng = np.random.default_rng(11)
+    n = 90
+    g = GridGeometry(n, 0.05, 23, -41)
+    d, _ = random_map(rng, n, frac_known=0.9)
+    i, j = np.indices((n, n))
+    view = (i >= 5) & (i <= 80) & (np.abs(j - 45) <= 3 + 0.5 * (i - 5)) & (i % 17 != 0)   # map order
+    keep = g.wrap(view)
+    d[:, ~keep] = np.array(UNKNOWN_VALUES)[:, None]
+    rows, cols = (5, 80), (0, n - 1)
+    out = []
+    for nthreads in (1, 2):
+        a = d.copy()
+        update_neighbour_spread(a, g, 4, rows, cols, nthreads=nthreads)
+        out.append(a)
+    b = d.copy()
+    update_neighbour_spread_reference(b, g, 4, rows, cols)
+    np.testing.assert_array_equal(out[0], out[1])
+    np.testing.assert_allclose(out[0], b, rtol=1e-9, atol=1e-15, equal_nan=True)
+    assert (out[0][NEIGHBOUR_SPREAD] > 0).sum() > 100
+
+
+@pytest.mark.parametrize("estimator", ["paule_mandel", "dersimonian_laird"])
+@pytest.mark.parametrize("impl", [update_neighbour_spread, update_neighbour_spread_reference])
+def test_a_few_cells_far_above_the_origin_get_the_spread_they_get_at_its_height(impl, estimator):
+    """The sums are taken relative to a height near the window's cells (sampled on every 8th row and
+    column, else over the whole window): a patch of cells that no sample meets, 100 km up, gets the spread
+    it gets at 0 m (without the reference height, DerSimonian-Laird's sums lose digits of it there)."""
+    rng = np.random.default_rng(3)
+    n = 64
+    g = GridGeometry(n, 0.05, 0, 0)
+    d = blank(n)
+    patch = (slice(33, 38), slice(41, 46))                  # no row or column a multiple of 8
+    d[ELEVATION][patch] = rng.normal(0.0, 0.05, (5, 5))
+    d[VARIANCE][patch] = 1e-4
+    d[SPREAD][patch] = 0.0
+    spread = []
+    for lift in (0.0, 1e5):
+        a = d.copy()
+        a[ELEVATION][patch] += lift
+        impl(a, g, 2, (33, 37), (41, 45), estimator=estimator)
+        spread.append(a[NEIGHBOUR_SPREAD][patch])
+    assert np.all(spread[0] > 0)
+    np.testing.assert_allclose(spread[1], spread[0], rtol=1e-6)
