@@ -122,7 +122,24 @@ def _record(name, width, height, impl, ms, items, frames, threads, **extra):
     return r
 
 
+def _stage_ms(d, K, T, P, scale, ws, frames, n, bar) -> dict:
+    """{stage: median ms} of the noise kernel's stages, each launched and timed alone, on one frame."""
+    seconds = {stage: [] for stage in STAGES}
+
+    def staged():          # the same kernels launched one at a time, each stage timed alone
+        for stage, sec in depth_to_map_points_by_stage(d, K, T, P, depth_scale=scale, workspace=ws,
+                                                       nthreads=n)[1].items():
+            seconds[stage].append(sec)
+
+    _median_ms(staged, frames, 2, bar)
+    return {stage: round(1e3 * float(np.median(sec[2:])), 4) for stage, sec in seconds.items()}
+
+
 def _bench_noise(frames, reference_frames, n, bar):
+    """The noise kernel on :func:`bench_scene`'s board next to its NumPy reference, each stage timed alone; the
+    numba records also carry ``floor_stages`` [ms] and ``floor_points``: the same stages on the mapper's frame
+    (:func:`floor_scene` after the mapper's valid-region margin), so that what makes the two frames' costs differ
+    (points per frame, windows of two surfaces that take the medians) is read off one run."""
     out = []
     for width, height in SIZES:
         d, scale, K, T, P = bench_scene(width, height)
@@ -130,18 +147,15 @@ def _bench_noise(frames, reference_frames, n, bar):
         npts = len(nm.depth_to_map_points(d, K, T, P, depth_scale=scale, workspace=ws, nthreads=n).pixel)
         fast = _median_ms(lambda: nm.depth_to_map_points(d, K, T, P, depth_scale=scale, workspace=ws,
                                                          nthreads=n), frames, 5, bar)
-        seconds = {stage: [] for stage in STAGES}
-
-        def staged():          # the same kernels launched one at a time, each stage timed alone
-            for stage, sec in depth_to_map_points_by_stage(d, K, T, P, depth_scale=scale, workspace=ws,
-                                                           nthreads=n)[1].items():
-                seconds[stage].append(sec)
-
-        _median_ms(staged, frames, 2, bar)
-        stages = {stage: round(1e3 * float(np.median(sec[2:])), 4) for stage, sec in seconds.items()}
+        stages = _stage_ms(d, K, T, P, scale, ws, frames, n, bar)
+        fd, fK, fT, fP = floor_scene(width, height)
+        fd = drop_valid_margin(fd, Camera("d435", fK, width, height).valid_margin_px, nthreads=n)
+        floor_points = len(nm.depth_to_map_points(fd, fK, fT, fP, depth_scale=0.001, workspace=ws, nthreads=n).pixel)
+        floor_stages = _stage_ms(fd, fK, fT, fP, 0.001, ws, frames, n, bar)
         ref = _median_ms(lambda: nm.depth_to_map_points_reference(d, K, T, P, depth_scale=scale),
                          reference_frames, 1, bar)
-        out.append(_record("noise", width, height, "numba", fast, npts, frames, n, stages=stages))
+        out.append(_record("noise", width, height, "numba", fast, npts, frames, n, stages=stages,
+                           floor_stages=floor_stages, floor_points=floor_points))
         out.append(_record("noise", width, height, "numpy", ref, npts, reference_frames, 1))
     return out
 
@@ -401,7 +415,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     dict
         ``{"results": [{"name", "width", "height", "impl", "median_ms", "points_per_s", "frames",
         "threads", ...}, ...], "machine": {...}}``; the ``noise`` numba records carry ``stages`` [ms], each stage of
-        :data:`noise_model.kernels.STAGES` timed alone; ``run``/``run_rrd`` records ``frames_per_s`` end to end and
+        :data:`noise_model.kernels.STAGES` timed alone, and ``floor_stages`` [ms], ``floor_points``: the same on the
+        mapper's floor frame (:func:`_bench_noise`); ``run``/``run_rrd`` records ``frames_per_s`` end to end and
         ``split_ms`` (:mod:`elevmap.commands.bench_run`); the ``update`` numba records ``stages`` [ms] (the map's
         fusion stage by stage, :func:`_bench_update`), ``floor_ratio`` (to the ``floor`` record of the same points)
         and ``cleanup_ms``; the ``mapper*`` records ``noise_ms`` and ``fusion_ms`` (a frame's split; the numba ones
@@ -417,7 +432,7 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
         raise ValueError(f"unknown bench group(s) {sorted(unknown)}; choose from {', '.join(GROUPS)}")
     n = resolve_threads(nthreads)
     map_ref = min(reference_frames, 3)
-    total = (("noise" in groups) * len(SIZES) * (2 * frames + reference_frames)
+    total = (("noise" in groups) * len(SIZES) * (3 * frames + reference_frames)
              + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
              + ("update" in groups) * len(UPDATE_SIZES) * (6 * frames + 2 * reference_frames)
              + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
@@ -492,6 +507,11 @@ def format_table(report: dict) -> str:
             st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
             lines.append(f"noise {r['width']}x{r['height']}: stages alone [ms]: {st} (sum "
                          f"{sum(r['stages'].values()):.2f})")
+            if "floor_stages" in r:
+                st = ", ".join(f"{k} {v:.2f}" for k, v in r["floor_stages"].items())
+                lines.append(f"noise {r['width']}x{r['height']}, the mapper's floor frame ({r['floor_points']} points, "
+                             f"the board {r['points']}): stages alone [ms]: {st} (sum "
+                             f"{sum(r['floor_stages'].values()):.2f})")
     for r in rows:
         if r["name"].startswith("mapper") and r["impl"] == "numba" and "fusion_ms" in r:
             margin = f" (valid-region margin {r['margin_ms']:.2f} ms)" if "margin_ms" in r else ""
