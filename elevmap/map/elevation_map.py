@@ -8,9 +8,12 @@ column j with y).
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
+
+from noise_model.numba_config import resolve_threads, threads
 
 from . import fusion, grid_map, neighbours, prediction, queries, storage, visibility
 from .grid import GridGeometry
@@ -168,14 +171,14 @@ class ElevationMap:
         p = np.asarray(points_map)
         if p.ndim != 2 or p.shape[1] != 3:
             raise ValueError(f"points_map must have shape (N, 3), got {p.shape}")
-        if not (np.issubdtype(p.dtype, np.floating) or np.issubdtype(p.dtype, np.integer)):
+        if p.dtype.kind not in "fiu":              # floating or integer
             raise ValueError(f"points_map must be floating point metres, got dtype {p.dtype}")
         p = p.astype(np.float64, copy=False)       # any memory layout: the fusion reads it column by column
         n_pts = len(p)
         var = np.asarray(height_var)
         if var.shape != (n_pts,):
             raise ValueError(f"height_var must have shape ({n_pts},), got {var.shape}")
-        if not np.issubdtype(var.dtype, np.floating):
+        if var.dtype.kind != "f":
             raise ValueError(f"height_var must be floating point [m^2], got dtype {var.dtype}")
         var = var.astype(np.float64, copy=False)
         hcov = None
@@ -208,13 +211,26 @@ class ElevationMap:
                           frame_error=None) -> dict:
         """:meth:`update` on inputs whose shapes and dtypes are checked (the fusion checks their values unless
         ``check`` is False: points whose producer counted none out of range, see :func:`fusion.fuse_frame`)."""
+        if impl == "numba":
+            n = resolve_threads(self.nthreads)
+            with threads(n):               # numba's thread count set once for the update's kernels
+                touched, box, cleared = self._update_kernels(p, var, hcov, stamp, origin, impl, check, frame_error,
+                                                             n)
+        else:
+            touched, box, cleared = self._update_kernels(p, var, hcov, stamp, origin, impl, check, frame_error)
+        self.frames += 1
+        self.last_stamp = stamp
+        return {"cells_updated": touched, "cells_cleared": cleared}
+
+    def _update_kernels(self, p, var, hcov, stamp, origin, impl, check, frame_error, n=None):
+        """The fusion, the clean-up and the neighbourhood spread of :meth:`_update_validated` (numba: inside its
+        ``threads(n)``). Returns (cells touched, their box or None, cells cleared)."""
         clean = origin is not None and self.visibility_cleanup
         if impl == "numba":
             # with the clean-up to come, the fusion's pass keeps each cell's lowest ray end for it
-            touched, box = fusion.fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params,
-                                             self._ws, self.nthreads,
-                                             visibility.ENDPOINT_MARGIN_SIGMAS if clean else None, check,
-                                             frame_error)
+            touched, box = fusion._fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params,
+                                              self._ws, n, visibility.ENDPOINT_MARGIN_SIGMAS if clean else None,
+                                              check, frame_error)
         else:
             touched, box = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp,
                                                        self.fusion_params, frame_error)
@@ -222,15 +238,14 @@ class ElevationMap:
         if clean and box is not None:
             cleared = self._visibility(origin, p, var, stamp, impl, box)
         if self.fusion_params.neighbour_radius and box is not None:
-            self._neighbours(box, origin if cleared else None, impl)
-        self.frames += 1
-        self.last_stamp = stamp
-        return {"cells_updated": touched, "cells_cleared": cleared}
+            self._neighbours(box, origin if cleared else None, impl, n)
+        return touched, box, cleared
 
-    def _neighbours(self, box, origin, impl) -> None:
+    def _neighbours(self, box, origin, impl, n=None) -> None:
         """Recompute the neighbourhood spread around the cells this frame touched: ``box`` (i0, i1, j0, j1),
         their first and last map row and column, with the camera's cell when visibility cleared cells on
-        the rays (clipped to the window: a ray enters the window between the camera and its point)."""
+        the rays (clipped to the window: a ray enters the window between the camera and its point). ``n``: numba's
+        threads, already set by the caller (None: set them here)."""
         i0, i1, j0, j1 = box
         if origin is not None:
             (oi, oj), _ = self.geometry.map_index(origin[:2])
@@ -239,8 +254,9 @@ class ElevationMap:
             i0, i1, j0, j1 = min(i0, oi), max(i1, oi), min(j0, oj), max(j1, oj)
         rows, cols = (i0, i1), (j0, j1)
         if impl == "numba":
-            neighbours.update_neighbour_spread(self.data, self.geometry, self.fusion_params.neighbour_radius, rows,
-                                               cols, self.nthreads, self.fusion_params.neighbour_estimator)
+            with threads(self.nthreads) if n is None else contextlib.nullcontext(n) as n:
+                neighbours._update_window(self.data, self.geometry, self.fusion_params.neighbour_radius, rows, cols,
+                                          n, self.fusion_params.neighbour_estimator)
         else:
             neighbours.update_neighbour_spread_reference(self.data, self.geometry,
                                                          self.fusion_params.neighbour_radius, rows, cols,

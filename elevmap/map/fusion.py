@@ -565,10 +565,10 @@ def _count_bad_hcov(hx, hxy, hy, k0, k1):
 def _accumulate_kernel(data, gx0, gy0, res, x, y, z, var, hx, hxy, hy, has_h, params, acc, acc_stamp, fid, check, box,
                        low_margin, T):
     """Pass 1, per partial grid over its fixed range of points: check the points' values (``check``), gate
-    each point against its cell's prior and sum it into the cell's partial grid. Writes only ``acc``, ``acc_stamp`` and ``box``
-    (per partial: points that failed the check, first and last map row and column reached): a point that
-    fails the check is summed too (its sums are garbage), and the caller then raises before anything
-    reaches the map. With ``low_margin`` >= 0 it also keeps each cell's lowest ray end for the
+    each point against its cell's prior and sum it into the cell's partial grid. Writes only ``acc``,
+    ``acc_stamp`` and ``box`` (per partial: points that failed the check, first and last map row and column
+    reached): a point that fails the check is summed too (its sums are garbage), and the caller then raises
+    before anything reaches the map. With ``low_margin`` >= 0 it also keeps each cell's lowest ray end for the
     visibility clean-up: the least z + low_margin sigma, ties to the smaller point index.
 
     Consecutive points of a depth image mostly fall in the same cell: a run of points in one cell is
@@ -734,66 +734,68 @@ def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, pbox,
     in their fixed order and write the cell (:func:`_merge_cell`). ``pbox`` holds each partial grid's first
     and last map row and column reached (columns 1-4, as pass 1 writes them): a row visits only the partial
     grids whose rows hold it, over the columns they reach. Rows are shared among the T threads interleaved
-    (:func:`elevmap.map.neighbours.interleaved`). Returns the cells touched."""
+    (thread tm takes rows tm, tm + T, ...: :func:`elevmap.map.neighbours.interleaved`), each thread with its
+    own scratch. Returns the cells touched."""
     n = data.shape[1]
     P = acc.shape[0]
     inf = np.inf
     touched = 0
-    for qi in prange(i1 - i0 + 1):
-        i = i0 + interleaved(qi, i1 - i0 + 1, T)
-        bi = i + sx
-        if bi >= n:
-            bi -= n
-        ps = np.empty(P, dtype=np.int64)      # the partial grids that reached row i, in their order
-        npart = 0
-        ja = n
-        jb = -1
-        for p in range(P):
-            if pbox[p, 1] <= i and i <= pbox[p, 2]:
-                ps[npart] = p
-                npart += 1
-                ja = min(ja, pbox[p, 3])
-                jb = max(jb, pbox[p, 4])
-        for j in range(ja, jb + 1):
-            bj = j + sy
-            if bj >= n:
-                bj -= n
-            c = bi * n + bj
-            W = WZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = W0 = WZ0 = WZZ0 = WW0 = 0.0
-            zmin = zminr = inf
-            zmax = zmaxr = -inf
-            seen = False
-            for m in range(npart):
-                p = ps[m]
-                if acc_stamp[p, c] == fid:
-                    seen = True
-                    a = acc[p, c]
-                    W += a[A_W]
-                    WZ += a[A_WZ]
-                    W0 += a[A_W0]
-                    WZ0 += a[A_WZ0]
-                    WZZ0 += a[A_WZZ0]
-                    WW0 += a[A_WW0]
-                    Nn += a[A_N]
-                    zmin = min(zmin, a[A_ZMIN])
-                    zmax = max(zmax, a[A_ZMAX])
-                    Wr += a[R_W]
-                    WZr += a[R_WZ]
-                    Nr += a[R_N]
-                    zminr = min(zminr, a[R_ZMIN])
-                    zmaxr = max(zmaxr, a[R_ZMAX])
-                    Hx += a[H_X]
-                    Hxy += a[H_XY]
-                    Hy += a[H_Y]
-            if not seen:
-                continue
-            touched += 1
-            if W > 0.0:
-                Hx /= W
-                Hxy /= W
-                Hy /= W
-            _merge_cell(data, bi, bj, W, WZ, Nn, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h,
-                        stamp, params, W0, WZ0, WZZ0, WW0)
+    for tm in prange(T):                         # thread tm: rows i0 + tm, i0 + tm + T, ...
+        ps = np.empty(P, dtype=np.int64)         # the partial grids that reached row i, in their order
+        for qi in range(tm, i1 - i0 + 1, T):
+            i = i0 + qi
+            bi = i + sx
+            if bi >= n:
+                bi -= n
+            npart = 0
+            ja = n
+            jb = -1
+            for p in range(P):
+                if pbox[p, 1] <= i and i <= pbox[p, 2]:
+                    ps[npart] = p
+                    npart += 1
+                    ja = min(ja, pbox[p, 3])
+                    jb = max(jb, pbox[p, 4])
+            for j in range(ja, jb + 1):
+                bj = j + sy
+                if bj >= n:
+                    bj -= n
+                c = bi * n + bj
+                W = WZ = Nn = Wr = WZr = Nr = Hx = Hxy = Hy = W0 = WZ0 = WZZ0 = WW0 = 0.0
+                zmin = zminr = inf
+                zmax = zmaxr = -inf
+                seen = False
+                for m in range(npart):
+                    p = ps[m]
+                    if acc_stamp[p, c] == fid:
+                        seen = True
+                        a = acc[p, c]
+                        W += a[A_W]
+                        WZ += a[A_WZ]
+                        W0 += a[A_W0]
+                        WZ0 += a[A_WZ0]
+                        WZZ0 += a[A_WZZ0]
+                        WW0 += a[A_WW0]
+                        Nn += a[A_N]
+                        zmin = min(zmin, a[A_ZMIN])
+                        zmax = max(zmax, a[A_ZMAX])
+                        Wr += a[R_W]
+                        WZr += a[R_WZ]
+                        Nr += a[R_N]
+                        zminr = min(zminr, a[R_ZMIN])
+                        zmaxr = max(zmaxr, a[R_ZMAX])
+                        Hx += a[H_X]
+                        Hxy += a[H_XY]
+                        Hy += a[H_Y]
+                if not seen:
+                    continue
+                touched += 1
+                if W > 0.0:
+                    Hx /= W
+                    Hxy /= W
+                    Hy /= W
+                _merge_cell(data, bi, bj, W, WZ, Nn, zmin, zmax, Wr, WZr, Nr, zminr, zmaxr, Hx, Hxy, Hy, has_h,
+                            stamp, params, W0, WZ0, WZZ0, WW0)
     return touched
 
 
@@ -855,16 +857,24 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
         map is then unchanged.
     """
     n = resolve_threads(nthreads)
+    with threads(n):
+        return _fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params, workspace, n,
+                           low_margin, check, frame_error)
+
+
+def _fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params, workspace, n, low_margin,
+                check, frame_error):
+    """:func:`fuse_frame` inside the caller's ``threads(n)`` (``n`` resolved): a map's update sets numba's
+    threads once for all its kernels."""
     has_h = horizontal_cov is not None
     pa = params.array(geometry.resolution_m, frame_error)
-    with threads(n):
-        box = accumulate(data, geometry, points_map, height_var, horizontal_cov, pa, workspace, check=check,
-                         low_margin=low_margin)
-        if box is None:
-            return 0, None
-        sx, sy = geometry.start_index
-        touched = _merge_kernel(data, int(sx), int(sy), has_h, float(stamp), pa, workspace.acc, workspace.stamp,
-                                workspace.frame, workspace.boxes, box[0], box[1], n)
+    box = accumulate(data, geometry, points_map, height_var, horizontal_cov, pa, workspace, check=check,
+                     low_margin=low_margin)
+    if box is None:
+        return 0, None
+    sx, sy = geometry.start_index
+    touched = _merge_kernel(data, int(sx), int(sy), has_h, float(stamp), pa, workspace.acc, workspace.stamp,
+                            workspace.frame, workspace.boxes, box[0], box[1], n)
     return int(touched), box
 
 

@@ -291,15 +291,24 @@ def _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, paule_mandel, T
     C = j1 - j0 + 1
     W = C + 2 * r                            # padded columns: map columns j0 - r .. j1 + r
     R = i1 - i0 + 1 + 2 * r                  # padded rows of A: map rows i0 - r .. i1 + r
-    A = np.zeros((5, R, C))
-    Hl = np.zeros((R, W))                    # the heights and P of the padded window, read by the
-    Pl = np.full((R, W), np.inf)             # Paule-Mandel solve (P = inf: the cell does not count)
+    A = np.empty((5, R, C))                  # each row set to zero by the thread that sums it
+    Hl = np.empty((R, W))                    # the heights and P of the padded window, read by the
+    Pl = np.empty((R, W))                    # Paule-Mandel solve (P = inf: the cell does not count)
     span = np.empty((R, 2), dtype=np.int64)  # each padded row's first and last counting column (first > last: none)
     for m in prange(T):
         q = np.zeros((5, W))
         for ii in range(m, R, T):
             span[ii, 0] = W
             span[ii, 1] = -1
+            for f in range(5):
+                Af = A[f, ii]
+                for c in range(C):
+                    Af[c] = 0.0
+            hrow = Hl[ii]
+            prow = Pl[ii]
+            for c in range(W):
+                hrow[c] = 0.0
+                prow[c] = np.inf
             i = i0 - r + ii
             if i < 0 or i >= n:
                 continue                     # beyond the map: zero
@@ -471,14 +480,20 @@ def update_neighbour_spread(data, geometry, radius: int = 2, rows=None, cols=Non
         The estimator of tau_n^2 (module docstring).
     """
     rows, cols = _check(data, geometry, rows, cols, radius, estimator)
+    n = resolve_threads(nthreads)
+    with threads(n):
+        _update_window(data, geometry, int(radius), rows, cols, n, estimator)
+
+
+def _update_window(data, geometry, radius, rows, cols, n, estimator):
+    """:func:`update_neighbour_spread` on checked inputs, inside the caller's ``threads(n)`` (``n`` resolved)."""
     i0, i1, j0, j1 = _window(geometry, rows, cols, radius)
     sx, sy = geometry.start_index
-    n = resolve_threads(nthreads)
     sx, sy = int(sx), int(sy)
-    ref = _reference_height(data, sx, sy, max(i0 - radius, 0), min(i1 + radius, geometry.n - 1),
-                            max(j0 - radius, 0), min(j1 + radius, geometry.n - 1))
-    with threads(n):
-        _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, int(radius), ref, estimator == "paule_mandel", n)
+    last = geometry.n - 1
+    ref = _reference_height(data, sx, sy, max(i0 - radius, 0), min(i1 + radius, last), max(j0 - radius, 0),
+                            min(j1 + radius, last))
+    _neighbour_kernel(data, sx, sy, i0, i1, j0, j1, radius, ref, estimator == "paule_mandel", n)
 
 
 @njit(**JIT)
