@@ -370,6 +370,23 @@ def test_a_field_sized_in_units_of_the_axial_noise_is_refitted_with_it():
                                               ("correlated_noise", ("axial_refit", "static_noise")))
 
 
+def test_refit_pairs_follow_the_registrys_axial_units():
+    """The default pairs come from EffectSpec.axial_units: a "sets" effect carries the "static" ones, a "temporal"
+    one carries the "sets" then the "static" ones, each in composition order; an unknown kind is refused."""
+    from noise_model.analysis.diagnosis.selection import refit_pairs
+    from noise_model.sim.effects import EffectSpec
+
+    def spec(name, order, units):
+        return EffectSpec(name, lambda: None, order=order, axial_units=units)
+
+    specs = {s.name: s for s in (spec("b_static", 3, "static"), spec("a_static", 2, "static"), spec("sets", 0, "sets"),
+                                 spec("fresh", 4, "temporal"), spec("other", 1, ""))}
+    assert refit_pairs(specs) == (("sets", ("a_static", "b_static")), ("fresh", ("sets", "a_static", "b_static")))
+    assert refit_pairs({}) == ()
+    with pytest.raises(ValueError, match="axial_units"):
+        spec("x", 0, "axial")
+
+
 # ---------------------------------------------------------------------------------------------
 # orchestration: capture set on disk -> report -> effects again
 # ---------------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ from .floor import Floor, GapResult, aggregate_by, compare, make_floor, realisat
 from .strata import Binning, GapCapture
 from .sums import STATISTICS, capture_sums, check_depth_stack, frame_sampling, pool_sums
 
-__all__ = ["SelectionConfig", "DiagnosisResult", "Diagnosis", "model_key", "other_realisation"]
+__all__ = ["SelectionConfig", "DiagnosisResult", "Diagnosis", "model_key", "other_realisation", "refit_pairs"]
 
 @dataclass(frozen=True)
 class SelectionConfig:
@@ -65,8 +65,10 @@ class SelectionConfig:
         kept when it lowers the fit gap and the held-out gap passes the shrink test's significance.
     refit_with : tuple of (str, tuple of str)
         Backfitting: when the first effect of a pair is refitted, the selected effects named in the second
-        are fitted again on top of the refit in the same trial, which is kept or dropped as a whole. For
-        effects whose size is a parameter in units of the first's output: ``static_noise`` is a fraction of
+        are fitted again on top of the refit in the same trial, which is kept or dropped as a whole. The
+        default, :func:`refit_pairs`, derives the pairs from the registry's
+        :attr:`~noise_model.sim.effects.EffectSpec.axial_units`. For effects whose size is a parameter in
+        units of the first's output: ``static_noise`` is a fraction of
         the sigma_z ``axial_refit`` sets, and what its fit measures is the static field's size in the data.
         A refit of ``axial_refit`` alone (lower once a correlated field takes its temporal share) would
         shrink that static field by the same factor; the fit gap would then weigh a smaller temporal error
@@ -85,8 +87,7 @@ class SelectionConfig:
     prune: bool = True
     readmit_after: tuple = ("axial_refit",)
     backfit: bool = True
-    refit_with: tuple = (("axial_refit", ("static_noise",)),
-                         ("correlated_noise", ("axial_refit", "static_noise")))
+    refit_with: tuple = field(default_factory=lambda: refit_pairs())
 
     def __post_init__(self):
         def names(value, what):
@@ -103,6 +104,31 @@ class SelectionConfig:
                              f"got {pairs!r}")
         object.__setattr__(self, "refit_with",
                            tuple((a, names(b, f"refit_with[{a!r}]")) for a, b in pairs))
+
+
+def refit_pairs(specs=None) -> tuple:
+    """The default of :attr:`SelectionConfig.refit_with`, from the effects' :attr:`EffectSpec.axial_units`.
+
+    An effect that sets the axial sigma_z ("sets") is refitted with the static fields sized in its units
+    ("static"), which would otherwise shrink with it; an effect whose per-frame field takes a share of the
+    temporal variance ("temporal") is refitted with the "sets" effects (which then give the rest of that
+    variance) and the "static" ones after them. Each list in the registry's composition order.
+
+    Parameters
+    ----------
+    specs : mapping of str to EffectSpec, optional
+        The registry (:data:`noise_model.sim.effects.SPECS` when omitted).
+
+    Returns
+    -------
+    tuple of (str, tuple of str)
+    """
+    if specs is None:
+        from ...sim.effects import SPECS as specs
+    ordered = sorted(specs.values(), key=lambda s: s.order)
+    kind = {u: tuple(s.name for s in ordered if s.axial_units == u) for u in ("sets", "static", "temporal")}
+    return (tuple((name, kind["static"]) for name in kind["sets"])
+            + tuple((name, kind["sets"] + kind["static"]) for name in kind["temporal"]))
 
 
 def model_key(effects) -> tuple:

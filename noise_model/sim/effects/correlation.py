@@ -239,7 +239,7 @@ SPECS = (
     EffectSpec("correlated_noise", correlated_noise, order=4,
                # 0.5-1.2 sigma_z correlated over 1.5-4 px (3-8 px at 848 x 480; E9: 3-10)
                param_ranges={"sigma_z_fraction": (0.5, 1.2), "length_px": (1.5, 4.0)},
-               valid={"sigma_z_fraction": (1e-6, 10.0), "length_px": (0.05, 200.0)}),
+               valid={"sigma_z_fraction": (1e-6, 10.0), "length_px": (0.05, 200.0)}, axial_units="temporal"),
     EffectSpec("static_pattern", static_pattern, order=2,
                # 0.02-0.05 px: 1.9-4.7 mm at 1 m, 7.5-19 mm at 2 m; correlated over 3-10 px
                param_ranges={"sigma_px": (0.02, 0.05), "length_px": (3.0, 10.0), "seed": (0, 1_000_000)},
@@ -249,5 +249,5 @@ SPECS = (
                # a static part of 0.5-1.5 times the temporal sigma, correlated over 2-16 px
                param_ranges={"sigma_z_fraction": (0.5, 1.5), "length_px": (2.0, 16.0), "seed": (0, 1_000_000)},
                valid={"sigma_z_fraction": (1e-6, 10.0), "length_px": (0.05, 200.0)},
-               integer_params={"seed": (0, 2 ** 31 - 1)}),
+               integer_params={"seed": (0, 2 ** 31 - 1)}, axial_units="static"),
 )

@@ -143,5 +143,6 @@ SPECS = (
                # elevation_mapping's fit is: no draw is an invisible effect
                param_ranges={"c0": (0.0004, 0.0009), "c1": (0.0002, 0.0006), "c2": (0.0018, 0.003),
                              "c_theta": (0.010, 0.016)},
-               valid={"c0": (1e-9, 0.05), "c1": (0.0, 0.05), "c2": (0.0, 0.05), "c_theta": (0.0, 1.0)}),
+               valid={"c0": (1e-9, 0.05), "c1": (0.0, 0.05), "c2": (0.0, 0.05), "c_theta": (0.0, 1.0)},
+               axial_units="sets"),
 )

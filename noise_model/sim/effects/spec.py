@@ -13,7 +13,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 
-__all__ = ["EffectSpec"]
+__all__ = ["EffectSpec", "AXIAL_UNITS"]
+
+#: The values of :attr:`EffectSpec.axial_units`.
+AXIAL_UNITS = ("", "sets", "static", "temporal")
 
 
 def _frozen(table: Mapping) -> Mapping:
@@ -42,6 +45,13 @@ class EffectSpec:
     integer_params : mapping of str to (int, int)
         Integer parameter -> the factory's range (inclusive); draws are integers, estimates are rounded
         and clipped to it.
+    axial_units : str
+        How the effect relates to the axial sigma_z of the model it is added to (:data:`AXIAL_UNITS`): ""
+        (sized in its own units), "sets" (it replaces that sigma_z: ``axial_refit``), "static" (a static
+        field sized as a fraction of it: ``static_noise``), "temporal" (a per-frame field sized as a
+        fraction of it, which takes a share of the temporal variance: ``correlated_noise``). The gap's
+        backfitting refits such effects together
+        (:func:`noise_model.analysis.diagnosis.selection.refit_pairs`).
     """
 
     name: str
@@ -50,7 +60,11 @@ class EffectSpec:
     param_ranges: Mapping = field(default_factory=dict)
     valid: Mapping = field(default_factory=dict)
     integer_params: Mapping = field(default_factory=dict)
+    axial_units: str = ""
 
     def __post_init__(self):
+        if self.axial_units not in AXIAL_UNITS:
+            raise ValueError(f"EffectSpec {self.name!r}: axial_units must be one of {AXIAL_UNITS}, "
+                             f"got {self.axial_units!r}")
         for attr in ("param_ranges", "valid", "integer_params"):
             object.__setattr__(self, attr, _frozen(getattr(self, attr)))
