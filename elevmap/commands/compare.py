@@ -54,8 +54,10 @@ Report (JSON, NaN written as null)::
                         "median_abs_m", "mean_error_m", "flat_coverage_2sigma", "known_cells",
                         "edge_cells", "edge_coverage_1sigma", "edge_coverage_2sigma", "edge_nll",
                         "edge_mean_error_m", "edge_known_fraction", "ms_per_frame_p95", "frames_digest",
-                        "edge_profile": [{"rings", "cells", "rmse_m", "mean_error_m", "coverage_2sigma",
-                                          "nll_sum", "large_errors"}, ...] (edge_profile),
+                        "edge_profile": [{"rings", "cells", "rmse_m", "mean_error_m", "coverage_1sigma",
+                                          "coverage_2sigma", "nll_sum", "large_errors"}, ...] (edge_profile),
+                        "variance_floor": {"cells", "fraction", "rmse_m", "coverage_1sigma",
+                                           "coverage_2sigma"} (floor_profile),
                         "model": {...}}, ...},
      "edge_band_cells": int (the band's cells some mapper knows),
      "common": {"cells": int, "mappers": {name: {"rmse_m", "p95_abs_m", "nll", "coverage_1sigma",
@@ -91,7 +93,8 @@ from ..pipeline import MappingConfig, edge_band, map_error
 from .compare_args import REALITIES, apply_settings, camera_settings, parse_mappers, parse_reality, parse_settings
 
 __all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "DEFAULT_CAP", "DISPARITY_SIGMA_PX",
-           "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "EDGE_RINGS", "edge_profile", "run_compare", "render_walk",
+           "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "EDGE_RINGS", "edge_profile", "FLOOR_MARGIN", "floor_profile",
+           "run_compare", "render_walk",
            "MapperSpec", "mapper_specs",
            "json_ready", "frames_digest",
            "most_confident", "closed_truth", "TRUTH_BOUNDARY_TOL_M"]
@@ -429,6 +432,9 @@ def _score(emap: ElevationMap, truth, times) -> dict:
     return out
 
 
+#: A cell whose variance is at most this times the floor counts as at the floor (:func:`floor_profile`).
+FLOOR_MARGIN = 1.1
+
 #: Rings of cells about the step edges for :func:`edge_profile`: (first, last) distance from the edge
 #: band in 4-connected cell steps (0: the band itself, within two cells of a step).
 EDGE_RINGS = ((0, 0), (1, 3), (4, 8), (9, None))
@@ -452,7 +458,7 @@ def edge_profile(height, variance, truth) -> list[dict]:
     -------
     list of dict
         One per ring of :data:`EDGE_RINGS`: ``rings`` (first, last distance), ``cells``, ``rmse_m``,
-        ``mean_error_m``, ``coverage_2sigma``, ``nll_sum`` (the ring's share of the NLL sum, in nats),
+        ``mean_error_m``, ``coverage_1sigma``, ``coverage_2sigma``, ``nll_sum`` (the ring's share of the NLL sum, in nats),
         ``large_errors`` (cells with |error| > 0.2 m).
     """
     band = edge_band(truth)
@@ -479,10 +485,27 @@ def edge_profile(height, variance, truth) -> list[dict]:
         out.append({"rings": [lo, hi], "cells": n,
                     "rmse_m": float(np.sqrt(np.mean(e ** 2))) if n else math.nan,
                     "mean_error_m": float(np.mean(e)) if n else math.nan,
+                    "coverage_1sigma": float(np.mean(np.abs(e) <= np.sqrt(v))) if n else math.nan,
                     "coverage_2sigma": float(np.mean(np.abs(e) <= 2.0 * np.sqrt(v))) if n else math.nan,
                     "nll_sum": float(np.sum(0.5 * np.log(2 * np.pi * v) + 0.5 * e ** 2 / v)),
                     "large_errors": int(np.sum(np.abs(e) > 0.2))})
     return out
+
+
+def floor_profile(height, variance, truth, min_variance: float) -> dict:
+    """Scores of the known cells whose variance is at the floor ``min_variance`` [m^2] (within
+    :data:`FLOOR_MARGIN`): such a cell reports the floor whatever its points say, so its coverage shows
+    whether the floor over- or understates the map's most precise cells. ``height``, ``variance``,
+    ``truth``: (H, W) [m], [m^2], [m] as in :func:`edge_profile`. Returns ``cells``, ``fraction`` (of the
+    known cells), ``rmse_m``, ``coverage_1sigma``, ``coverage_2sigma`` (NaN without such cells)."""
+    known = np.isfinite(height) & np.isfinite(variance) & np.isfinite(truth)
+    at = known & (variance <= FLOOR_MARGIN * min_variance)
+    n = int(at.sum())
+    e, s = (height - truth)[at], np.sqrt(variance[at])
+    return {"cells": n, "fraction": float(n / known.sum()) if known.any() else math.nan,
+            "rmse_m": float(np.sqrt(np.mean(e ** 2))) if n else math.nan,
+            "coverage_1sigma": float(np.mean(np.abs(e) <= s)) if n else math.nan,
+            "coverage_2sigma": float(np.mean(np.abs(e) <= 2.0 * s)) if n else math.nan}
 
 
 def _edge_known_fractions(maps: dict, truth) -> tuple[int, dict]:
@@ -669,6 +692,9 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
             results[name]["edge_known_fraction"] = frac
             results[name]["edge_profile"] = edge_profile(maps[name].known_layer("elevation"),
                                                          maps[name].known_layer("variance"), tr)
+            results[name]["variance_floor"] = floor_profile(maps[name].known_layer("elevation"),
+                                                            maps[name].known_layer("variance"), tr,
+                                                            maps[name].fusion_params.min_variance)
         common = _common_scores(maps, truth)
         matched = _matched_scores(maps, truth)
         report = {"scene": scene, "frames": len(frames), "seed": int(seed), "width": int(width),

@@ -497,6 +497,20 @@ def test_edge_profile_by_hand():
     assert rings[1]["nll_sum"] == pytest.approx(6 * nll0) and math.isnan(rings[3]["rmse_m"])
 
 
+def test_floor_profile_by_hand():
+    from elevmap.commands.compare import edge_profile, floor_profile
+
+    truth = np.zeros((1, 6))
+    h = np.array([[0.0005, 0.0015, 0.003, 0.01, np.nan, 0.0]])
+    v = np.array([[1e-6, 1.05e-6, 1e-6, 4e-4, 1e-6, 2e-6]])       # cells 0-2 at the floor (1 mm)^2, 3 and 5 not
+    fl = floor_profile(h, v, truth, 1e-6)
+    assert fl["cells"] == 3 and fl["fraction"] == pytest.approx(3 / 5)
+    assert fl["coverage_1sigma"] == pytest.approx(1 / 3) and fl["coverage_2sigma"] == pytest.approx(2 / 3)
+    assert fl["rmse_m"] == pytest.approx(np.sqrt((0.0005 ** 2 + 0.0015 ** 2 + 0.003 ** 2) / 3))
+    assert floor_profile(h, v, truth, 1e-9)["cells"] == 0 and math.isnan(floor_profile(h, v, truth, 1e-9)["rmse_m"])
+    assert edge_profile(h, v, truth)[3]["coverage_1sigma"] == pytest.approx(3 / 5)   # no step: all in the last ring
+
+
 def test_a_cell_centred_on_a_steps_edge_is_scored_against_the_upper_side():
     from elevmap.commands.compare import closed_truth
     from elevmap.sources.simulated import SimulatedWalk
