@@ -637,7 +637,7 @@ def test_direct_measurements_read_known_effects():
     out = direct_measurements(caps)
     p = out["pooled"]
     assert p["disparity_step_px"] == pytest.approx(1 / 32, rel=0.05)
-    assert 3.0 <= p["band_margin_px"] <= 4.0                          # first column: ceil(f B / z + margin)
+    assert 2.5 <= p["band_margin_px"] <= 3.5          # first column ceil(f B / z + margin), less half a column
     assert p["static_sigma_d_px"] == pytest.approx(0.06, rel=0.15)
     assert p["static_length_px"] == pytest.approx(5.0, rel=0.2)
     sd = [float(nm.axial_sigma(np.array([d]), np.array([0.0]))[0]) * 10.6 / d ** 2 for d in (1.2, 1.6)]
@@ -646,6 +646,36 @@ def test_direct_measurements_read_known_effects():
                          {"name": "static_pattern", "params": {"sigma_px": 0.1, "length_px": 5.0, "seed": 0}}], out)
     by = {r["quantity"]: r for r in rows}
     assert by["band_margin_px"]["agrees"] and not by["static_sigma_d_px"]["agrees"]
+
+
+def test_direct_band_reads_the_dark_margin_on_boards_backgrounds():
+    from noise_model.analysis.capture_data import CaptureData
+    from noise_model.analysis.diagnosis.direct import check_fitted, direct_measurements
+
+    cam = {"width": 424, "height": 240, "fx": 212.0, "fy": 212.0, "ppx": 211.5, "ppy": 119.5,
+           "depth_scale": 0.001, "baseline_m": 0.05}
+    band = [E.invalid_band(3.0, dark_margin_px=2.0)]
+    geoms = [CaptureGeometry.from_capture_set_entry(cam, {"id": f"w{i}", "target": {"kind": "wall", "distance_m": d}})
+             for i, d in enumerate((0.9, 1.3))]
+    geoms += [CaptureGeometry.from_capture_set_entry(cam, {"id": f"b{i}", "background_m": 3.0, "target": {
+        "kind": "board", "distance_m": d, "yaw_deg": 0.0, "width_m": 0.6, "height_m": 0.9}})
+        for i, d in enumerate((0.5, 0.8, 1.1, 1.4, 1.7, 2.0))]
+    caps = [CaptureData.from_units(g, simulate_capture(g, 2, np.random.default_rng([5, i]), D435, band))
+            for i, g in enumerate(geoms)]
+    out = direct_measurements(caps)
+    p = out["pooled"]
+    # each capture bounds margin + dark s to one column: the line through them is within half a column
+    assert p["band_margin_px"] == pytest.approx(3.0, abs=0.5)
+    assert p["band_dark_margin_px"] == pytest.approx(2.0, abs=0.7)
+    board = {r["id"]: r for r in out["captures"]}
+    assert board["b0"]["band_darkness"] > 0.9 > 0.2 > board["b5"]["band_darkness"] and board["w0"]["band_darkness"] == 0
+    rows = {r["quantity"]: r for r in check_fitted([{"name": "invalid_band", "params": band[0].params}], out)}
+    assert rows["band_margin_px"]["agrees"] and rows["band_dark_margin_px"]["agrees"]
+    # walls alone say nothing about the dark margin
+    walls = direct_measurements(caps[:2])["pooled"]
+    assert math.isnan(walls["band_dark_margin_px"]) and walls["band_margin_px"] == pytest.approx(3.0, abs=0.5)
+    assert [r["quantity"] for r in check_fitted([{"name": "invalid_band", "params": band[0].params}],
+                                                direct_measurements(caps[:2]))] == ["band_margin_px"]
 
 
 def test_direct_frame_offset_reads_the_per_frame_offset():

@@ -134,7 +134,7 @@ def test_effects_from_report(tmp_path):
         {"name": "static_pattern", "params": {"sigma_px": 0.03, "length_px": 5.0, "seed": 0}}]}
     effs = E.effects_from_report(report)
     assert [e.name for e in effs] == ["invalid_band", "static_pattern"]
-    assert effs[0].params == {"margin_px": 6.0}
+    assert effs[0].params == {"margin_px": 6.0, "dark_margin_px": 0.0}          # a report without it: none
     path = tmp_path / "gap.json"
     path.write_text(json.dumps(report))
     assert [e.params for e in E.effects_from_report(path)] == [e.params for e in effs]
@@ -180,6 +180,27 @@ def test_quantization_puts_disparities_on_the_lattice_and_invalid_band_cuts_the_
     ctx = _ctx(z_true)
     del ctx["z_true"]
     assert np.isnan(E.invalid_band(4.0)(z_true.copy(), z_true * 0, rng, ctx)[:, :15]).all()
+
+
+def test_invalid_band_is_wider_on_a_surface_darker_than_the_frame_by_the_dark_margin():
+    rng = np.random.default_rng(0)
+    from noise_model.sim.effects.coverage import band_darkness
+
+    z_true, theta = _step(z_left=3.0, z_right=1.0, col=212)           # a far background left of a near board
+    # b = 1 / z^2: 1/9 on the left, 1 on the right, mean 5/9 -> darkness 1 - (1/9) / (5/9) = 0.8 on the left
+    s = band_darkness(z_true, theta)
+    assert np.allclose(s[:, :212], 0.8) and np.all(s[:, 212:] == 0.0)
+    # u < f B / 3 + 2 + 2.5 x 0.8 = 3.533 + 4 -> columns 0..7 have no data; without the dark margin 0..5
+    out = E.invalid_band(2.0, dark_margin_px=2.5)(z_true.copy(), theta, rng, _ctx(z_true))
+    assert np.flatnonzero(np.isnan(out).all(axis=0)).tolist() == list(range(8))
+    plain = E.invalid_band(2.0)(z_true.copy(), theta, rng, _ctx(z_true))
+    assert np.flatnonzero(np.isnan(plain).all(axis=0)).tolist() == list(range(6))
+    # a uniformly lit wall is nowhere darker than its own level: the dark margin changes nothing
+    wall = np.full((20, 424), 1.0)
+    assert np.array_equal(E.invalid_band(2.0, 2.5)(wall.copy(), wall * 0, rng, _ctx(wall)),
+                          E.invalid_band(2.0)(wall.copy(), wall * 0, rng, _ctx(wall)), equal_nan=True)
+    with pytest.raises(ValueError, match="dark_margin_px"):
+        E.invalid_band(2.0, dark_margin_px=-1.0)
 
 
 def test_depth_bias_and_static_pattern_in_disparity():

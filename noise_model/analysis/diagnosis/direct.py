@@ -11,9 +11,15 @@ regions; d = f B / z the disparity [px], F frames):
 ``disparity_step_px``
     The lattice the disparities sit on (E2): the median spacing of consecutive distinct disparity values
     of the captures at >= 1 m, where the depth unit is finer than one disparity step.
-``band_margin_px``
-    The left invalid band's width beyond f B / z (E6): per row of a wall at <= 30 deg, the first column
-    with data in at least half the frames, minus f B / z_true there; the median over rows and walls.
+``band_margin_px`` / ``band_dark_margin_px``
+    The left invalid band's width beyond f B / z (E6) and how much wider it is on a surface darker than
+    its frame's exposure level. Per row of a wall, or of a board's background, at <= 30 deg whose surface
+    reaches column 0: u0 the first column with data in at least half the frames, y = u0 - f B / z_true
+    - 1/2 (the band's edge lies between columns u0 - 1 and u0, so its middle is the estimate, as the fit
+    takes the middle of the gap) and s the darkness there
+    (:func:`noise_model.sim.effects.coverage.band_darkness`); per capture the medians of y and s. Pooled:
+    the line y = margin + dark_margin s by least squares over the captures when their s spans 0.2;
+    otherwise the median of y and no dark margin (NaN).
 ``temporal_sigma_d_px`` / ``static_sigma_d_px``
     The per-pixel standard deviation over frames (root mean square over pixels), and the standard
     deviation of the per-pixel mean about its best plane with the temporal share removed (E1, E10).
@@ -37,7 +43,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from ..capture_data import REGION_INTERIOR, REGION_LEFT_BAND
+from ...sim.effects.coverage import band_darkness
+from ..capture_data import REGION_BACKGROUND, REGION_INTERIOR, REGION_LEFT_BAND
 from ..effect_fits.correlation import _STATIC_NOISE_LAGS, fit_gaussian_cov, lag_cov, static_lag_cov
 
 __all__ = ["capture_measurements", "direct_measurements", "check_fitted", "TOLERANCE"]
@@ -62,9 +69,9 @@ def capture_measurements(c) -> dict:
     -------
     dict
         ``id``, ``kind``, ``distance_m``, ``angle_deg``, ``temporal_sigma_d_px``, ``static_sigma_d_px``,
-        ``temporal_length_px``, ``static_length_px``, ``frame_offset_px``, ``band_margin_px`` (walls at
-        <= 30 deg), ``steps_px`` (the
-        spacings of consecutive distinct disparities, an array).
+        ``temporal_length_px``, ``static_length_px``, ``frame_offset_px``, ``band_margin_px`` and
+        ``band_darkness`` (walls and boards' backgrounds at <= 30 deg: the medians of y and s of the module
+        docstring), ``steps_px`` (the spacings of consecutive distinct disparities, an array).
     """
     g = c.geometry
     fb = g.fb_px_m
@@ -74,7 +81,8 @@ def capture_measurements(c) -> dict:
            "angle_deg": float(math.degrees(math.acos(min(1.0, abs(math.cos(math.radians(g.yaw_deg))
                                                                    * math.cos(math.radians(g.pitch_deg))))))),
            "temporal_sigma_d_px": nan, "static_sigma_d_px": nan, "temporal_length_px": nan,
-           "static_length_px": nan, "frame_offset_px": nan, "band_margin_px": nan, "steps_px": np.zeros(0)}
+           "static_length_px": nan, "frame_offset_px": nan, "band_margin_px": nan, "band_darkness": nan,
+           "steps_px": np.zeros(0)}
     F = c.n_frames
     with np.errstate(divide="ignore", invalid="ignore"):
         d = fb / c.depth_m
@@ -99,21 +107,48 @@ def capture_measurements(c) -> dict:
     vals = np.unique(np.round(vals[np.isfinite(vals)], 6))
     if vals.size >= 3:
         row["steps_px"] = np.diff(vals)
-    if g.kind == "wall" and row["angle_deg"] <= 30.0 + 1e-6:
+    if (g.kind == "wall" or g.background_m is not None) and row["angle_deg"] <= 30.0 + 1e-6:
         reg = g.regions()
-        margins = []
+        z_all, theta = g.render()
+        dark = band_darkness(z_all, theta)
+        own = REGION_INTERIOR if g.kind == "wall" else REGION_BACKGROUND
+        margins, darks = [], []
         valid = np.mean(c.has_data(), axis=0) >= 0.5
         for v in range(g.height):
-            surf = np.isfinite(z[v]) & ((reg[v] == REGION_INTERIOR) | (reg[v] == REGION_LEFT_BAND))
+            surf = np.isfinite(z_all[v]) & ((reg[v] == own) | (reg[v] == REGION_LEFT_BAND))
             if c.mask is not None:
                 surf &= c.mask[v]
-            cols = np.flatnonzero(valid[v] & surf)
-            if cols.size and surf[0]:
+            if not surf[0]:
+                continue
+            reach = int(np.argmin(surf)) if not surf.all() else surf.size      # the surface from column 0 on
+            cols = np.flatnonzero(valid[v, :reach])
+            if cols.size:
                 u0 = int(cols[0])
-                margins.append(u0 - fb / z[v, u0])
+                margins.append(u0 - fb / z_all[v, u0] - 0.5)
+                darks.append(dark[v, u0])
         if margins:
             row["band_margin_px"] = float(np.median(margins))
+            row["band_darkness"] = float(np.median(darks))
     return row
+
+
+#: The captures' band darkness must span this much for the pooled dark margin (as the fit's
+#: noise_model.analysis.effect_fits.coverage._DARK_MIN_SPREAD).
+_DARK_MIN_SPREAD = 0.2
+
+
+def _band_line(rows) -> tuple[float, float]:
+    """(margin, dark margin) of the pooled band measurement (module docstring); NaN where undefined."""
+    y = np.array([r["band_margin_px"] for r in rows], dtype=float)
+    x = np.array([r["band_darkness"] for r in rows], dtype=float)
+    ok = np.isfinite(y) & np.isfinite(x)
+    y, x = y[ok], x[ok]
+    if not y.size:
+        return float("nan"), float("nan")
+    if x.max() - x.min() < _DARK_MIN_SPREAD:
+        return float(np.median(y)), float("nan")
+    slope, intercept = np.polyfit(x, y, 1)
+    return float(intercept), float(slope)
 
 
 def direct_measurements(captures) -> dict:
@@ -122,7 +157,8 @@ def direct_measurements(captures) -> dict:
     ``captures`` is any iterable of CaptureData (a generator keeps one capture in memory at a time).
 
     Pooled: ``disparity_step_px`` (median spacing of distinct disparities over the captures at >= 1 m),
-    ``band_margin_px`` (median over the walls), the medians over captures of the sigmas and lengths.
+    ``band_margin_px`` and ``band_dark_margin_px`` (the line over the walls and boards' backgrounds, module
+    docstring), the medians over captures of the sigmas and lengths.
     """
     rows = [capture_measurements(c) for c in captures]
     steps = [r["steps_px"] for r in rows if r["distance_m"] >= 1.0 and r["steps_px"].size]
@@ -134,8 +170,9 @@ def direct_measurements(captures) -> dict:
         v = v[np.isfinite(v)]
         return float(np.median(v)) if v.size else float("nan")
 
+    margin, dark = _band_line(rows)
     pooled = {"disparity_step_px": float(np.median(small)) if small.size else float("nan"),
-              "band_margin_px": med("band_margin_px"),
+              "band_margin_px": margin, "band_dark_margin_px": dark,
               "temporal_sigma_d_px": med("temporal_sigma_d_px"), "static_sigma_d_px": med("static_sigma_d_px"),
               "temporal_length_px": med("temporal_length_px"), "static_length_px": med("static_length_px"),
               "frame_offset_px": med("frame_offset_px")}
@@ -179,6 +216,8 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
             add("disparity_step_px", name, 2.0 ** -int(params["subpixel_bits"]), p["disparity_step_px"])
         elif name == "invalid_band":
             add("band_margin_px", name, params["margin_px"], p["band_margin_px"])
+            if math.isfinite(p.get("band_dark_margin_px", float("nan"))):
+                add("band_dark_margin_px", name, params.get("dark_margin_px", 0.0), p["band_dark_margin_px"])
         elif name == "correlated_noise":
             add("temporal_length_px", name, params["length_px"], p["temporal_length_px"])
         elif name in ("static_pattern", "static_noise"):

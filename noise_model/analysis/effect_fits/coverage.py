@@ -1,6 +1,7 @@
 """Fits of the coverage effects: ``invalid_band``, ``dropout``.
 
-* invalid_band: least-squares threshold on the missing fraction against u - f B / z_true.
+* invalid_band: least-squares threshold on the missing fraction against u - f B / z_true less the dark
+  margin times the pixel's darkness (the dark margin by a search over a grid).
 * dropout: binomial maximum likelihood of P(no data | z, theta), then the blob length from pairs of holes.
 """
 
@@ -18,19 +19,55 @@ from .spec import FitSpec
 
 
 # ---- invalid_band ---------------------------------------------------------------------------------
-def _fit_invalid_band(real, base, model, rois=None, **_):
-    """Least-squares threshold on the missing fraction.
+#: Grid of dark_margin_px tried by the invalid_band fit [px] (0 to 4 px every 0.05 px, then refined).
+_DARK_GRID_PX = np.linspace(0.0, 4.0, 81)
+#: The fit only tries a dark margin when some pixel near the band is darker than its frame's level by
+#: this much (band_darkness); otherwise dark_margin_px is 0 (the captures cannot tell it).
+_DARK_MIN_SPREAD = 0.2
 
-    Every hit pixel has c = u - f B / z_true (columns beyond its own disparity); the effect removes the
-    pixels with c < margin. Over the pixels with c < 60 px of all captures, the margin minimising
-    sum (a - 1)^2 over c < margin plus sum (a - a0)^2 over c >= margin (a, a0: the pixel's missing
-    fraction over the frames in the real data and in the base simulation) is found by sorting c;
-    the estimate is the middle of the gap between the two c values around the step. Single frames:
+
+def _band_threshold(cs, a, a0):
+    """Least-squares step of the missing fraction over c: (loss, margin, width of the gap the margin is the
+    middle of) (see :func:`_fit_invalid_band`)."""
+    order = np.argsort(cs, kind="stable")
+    cs, a, a0 = cs[order], a[order], a0[order]
+    left = np.concatenate([[0.0], np.cumsum((a - 1.0) ** 2)])        # pixels 0..k-1 in the band
+    right = np.concatenate([np.cumsum(((a - a0) ** 2)[::-1])[::-1], [0.0]])
+    tot = left + right
+    tot[1:-1][cs[1:] == cs[:-1]] = np.inf                  # a step only between distinct values of c
+    k = int(np.argmin(tot))
+    if k == 0:
+        margin, width = cs[0] - 0.5, 1.0
+    elif k == cs.size:
+        margin, width = cs[-1] + 0.5, 1.0
+    else:
+        margin, width = 0.5 * (cs[k - 1] + cs[k]), cs[k] - cs[k - 1]
+    return float(tot[k]), float(margin), float(width)
+
+
+def _fit_invalid_band(real, base, model, rois=None, **_):
+    """Least-squares threshold on the missing fraction, with the dark margin by a search over a grid.
+
+    Every hit pixel has c = u - f B / z_true (columns beyond its own disparity) and a darkness s
+    (:func:`noise_model.sim.effects.coverage.band_darkness` of its frame's true depth and angle); the
+    effect removes the pixels with c - dark_margin s < margin. For a given dark margin k, over the pixels
+    with c < 60 px of all captures, the margin minimising sum (a - 1)^2 over c - k s < margin plus
+    sum (a - a0)^2 over the others (a, a0: the pixel's missing fraction over the frames in the real data
+    and in the base simulation) is found by sorting c - k s; the estimate is the middle of the gap
+    between the two values around the step (never between equal values: pixels of one c are on one
+    side). (k, margin) is the centroid of the region of least loss over the grid of k (:data:`_DARK_GRID_PX`,
+    then a grid ten times finer around it), each k weighted by the width of its margin's gap: noise-free
+    captures whose backgrounds share one disparity fit a whole region equally (each capture's first column
+    only bounds margin + k s to one column), and its centroid is the estimate of least expected squared
+    error; k = 0 when no pixel is
+    darker than :data:`_DARK_MIN_SPREAD` (walls alone: nothing tells k from the margin). Single frames:
     the fractions are 0 or 1 (nothing temporal is used).
     """
-    cs, a, a0 = [], [], []
+    from ...sim.effects.coverage import band_darkness
+
+    cs, ss, a, a0 = [], [], [], []
     for c, b in zip(real, base):
-        z, _, _, fb = _nominal(c.geometry, model)
+        z, th, _, fb = _nominal(c.geometry, model)
         u = np.arange(c.geometry.width)[None, :]
         with np.errstate(invalid="ignore", divide="ignore"):
             cc = u - fb / z
@@ -40,23 +77,25 @@ def _fit_invalid_band(real, base, model, rois=None, **_):
         if not m.any():
             continue
         cs.append(cc[m])
+        ss.append(band_darkness(z, th)[m])
         a.append(np.mean(~np.isfinite(_pixels(c, m)), axis=0))
         a0.append(np.mean(~np.isfinite(_pixels(b, m)), axis=0))
     if not cs:
         raise ValueError("invalid_band: no pixel near the left band")
-    cs, a, a0 = (np.concatenate(x) for x in (cs, a, a0))
-    order = np.argsort(cs, kind="stable")
-    cs, a, a0 = cs[order], a[order], a0[order]
-    left = np.concatenate([[0.0], np.cumsum((a - 1.0) ** 2)])        # pixels 0..k-1 in the band
-    right = np.concatenate([np.cumsum(((a - a0) ** 2)[::-1])[::-1], [0.0]])
-    k = int(np.argmin(left + right))
-    if k == 0:
-        margin = cs[0] - 0.5
-    elif k == cs.size:
-        margin = cs[-1] + 0.5
-    else:
-        margin = 0.5 * (cs[k - 1] + cs[k])
-    return {"margin_px": float(margin)}
+    cs, ss, a, a0 = (np.concatenate(x) for x in (cs, ss, a, a0))
+    if not np.any(ss >= _DARK_MIN_SPREAD):
+        return {"margin_px": _band_threshold(cs, a, a0)[1], "dark_margin_px": 0.0}
+
+    def best(grid):
+        fits = np.array([_band_threshold(cs - k * ss, a, a0) for k in grid])
+        tied = fits[:, 0] <= fits[:, 0].min() * (1.0 + 1e-9) + 1e-12
+        w = fits[tied, 2]                                 # the centroid of the (k, margin) region that fits best
+        return float(np.sum(grid[tied] * w) / np.sum(w)), float(np.sum(fits[tied, 1] * w) / np.sum(w))
+
+    k, _ = best(_DARK_GRID_PX)
+    step = float(_DARK_GRID_PX[1] - _DARK_GRID_PX[0])
+    k, margin = best(np.unique(np.clip(np.linspace(k - 2 * step, k + 2 * step, 41), 0.0, None)))
+    return {"margin_px": margin, "dark_margin_px": k}
 
 
 # ---- dropout --------------------------------------------------------------------------------------
@@ -204,9 +243,11 @@ def _fit_dropout(real, base, model, rois=None, **_):
 SPECS = (
     # planar targets at several distances: the 0.5 px tolerance is the step between consecutive values
     # of c = u - f B / z, which several distances make fine
-    FitSpec("invalid_band", _fit_invalid_band, needs=("wall", "board"),
-            tolerance={"margin_px": ("abs", 0.5)},
-            tolerance_single_frame={"margin_px": ("abs", 0.5)}),
+    # the dark margin needs pixels near the band darker than their frame's level (a far background
+    # beside a nearer board): the self-test draws it on boards before a background
+    FitSpec("invalid_band", _fit_invalid_band, needs=("wall", "board", "board+background"),
+            tolerance={"margin_px": ("abs", 0.5), "dark_margin_px": ("abs", 0.5)},
+            tolerance_single_frame={"margin_px": ("abs", 0.5), "dark_margin_px": ("abs", 0.5)}),
     # needs angles up to >= 45 deg too: k_theta is poorly determined by angles up to 30 deg alone
     FitSpec("dropout", _fit_dropout, needs=("wall", "board"),
             tolerance={"p_1m": ("rel", 0.1), "k_z": ("abs", 0.1), "k_theta": ("abs", 0.2), "length_px": ("rel", 0.1)},
