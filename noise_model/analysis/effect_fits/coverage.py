@@ -244,10 +244,13 @@ SPECS = (
     # planar targets at several distances: the 0.5 px tolerance is the step between consecutive values
     # of c = u - f B / z, which several distances make fine
     # the dark margin needs pixels near the band darker than their frame's level (a far background
-    # beside a nearer board): the self-test draws it on boards before a background
+    # beside a nearer board): the self-test draws it on boards before a background. Their backgrounds
+    # share one disparity, so each board's first column bounds margin + dark_margin s to one column, and
+    # the darkest and the brightest board (s 0.92 and 0.05) leave the dark margin within 1 / (0.92 - 0.05)
+    # = 1.15 px of the centroid: its tolerance is that bound, not a multiple of the errors seen
     FitSpec("invalid_band", _fit_invalid_band, needs=("wall", "board", "board+background"),
-            tolerance={"margin_px": ("abs", 0.5), "dark_margin_px": ("abs", 0.5)},
-            tolerance_single_frame={"margin_px": ("abs", 0.5), "dark_margin_px": ("abs", 0.5)}),
+            tolerance={"margin_px": ("abs", 0.5), "dark_margin_px": ("abs", 1.2)},
+            tolerance_single_frame={"margin_px": ("abs", 0.5), "dark_margin_px": ("abs", 1.2)}),
     # needs angles up to >= 45 deg too: k_theta is poorly determined by angles up to 30 deg alone
     FitSpec("dropout", _fit_dropout, needs=("wall", "board"),
             tolerance={"p_1m": ("rel", 0.1), "k_z": ("abs", 0.1), "k_theta": ("abs", 0.2), "length_px": ("rel", 0.1)},
