@@ -370,6 +370,57 @@ def test_a_field_sized_in_units_of_the_axial_noise_is_refitted_with_it():
                                               ("correlated_noise", ("axial_refit", "static_noise")))
 
 
+def _toy_sim_share(by_id, ids, effects, n_frames, seed):
+    """z_true + s sigma_z N + q s sigma_z G_t: 'noise' (s, the axial noise's scale) and 'share' (q, a field
+    drawn each frame, Gaussian-correlated over 3 px and of unit variance, in units of the axial noise)."""
+    from scipy import ndimage
+
+    p = {n: q for n, q in effects}
+    s = p.get("noise", {}).get("s", 1.0)
+    out = {}
+    for i in ids:
+        c = by_id[i]
+        rng = np.random.default_rng([seed, int(1000 * c.distance_m), int(c.angle_deg)])
+        sd = s * c.sigma_m[None]
+        d = c.z_true_m[None] + sd * rng.standard_normal((n_frames, H, W))
+        if "share" in p:
+            g = ndimage.gaussian_filter(rng.standard_normal((n_frames, H, W)), (0, 3.0, 3.0))
+            d = d + p["share"]["q"] * sd * g / g.std()
+        out[i] = d
+    return out
+
+
+def test_a_candidate_that_takes_a_share_of_the_temporal_variance_is_tried_with_the_axial_noise_refitted():
+    # real: axial noise 0.5 / sqrt(2) and a correlated per-frame field of the same size (total 0.5). Round 1
+    # selects the axial noise at the whole 0.5 (the field, tried on the reference's noise, is pruned and
+    # readmitted after it). Tried alone, the field adds to it (total 0.71); tried with the
+    # axial noise refitted on top (0.5 / sqrt(1 + q^2)), the temporal variance stays the real one, its fit
+    # gap is lower, and the accepted effects carry the refit (its first fit kept as params_first_fit)
+    caps, by_id = _toy_set()
+    ids = [c.id for c in caps]
+    real = _toy_sim_share(by_id, ids, [("noise", {"s": 0.5 / math.sqrt(2.0)}), ("share", {"q": 1.0})], 12, 5)
+
+    def fit(name, base):
+        if name == "noise":
+            return {"s": 0.5 / math.sqrt(1.0 + dict(base).get("share", {"q": 0.0})["q"] ** 2)}
+        return {"q": 1.0}
+
+    out = {}
+    for cfg in (G.SelectionConfig(refit_with=(("share", ("noise",)),), backfit=False, readmit_after=("noise",)),
+                G.SelectionConfig(refit_with=(), backfit=False, readmit_after=("noise",))):
+        rep = _toy_held_out(caps, by_id, real, fit, sim=_toy_sim_share, config=cfg).run(["noise", "share"]).report
+        out[cfg.refit_with] = rep
+    joint, alone = out[(("share", ("noise",)),)], out[()]
+    assert [e["name"] for e in joint["effects"]] == ["noise", "share"]
+    (share_joint,) = [c for c in joint["rounds"][1]["candidates"] if c["name"] == "share"]
+    (share_alone,) = [c for c in alone["rounds"][1]["candidates"] if c["name"] == "share"]
+    assert share_joint["refit_with"] == [{"name": "noise", "params": {"s": pytest.approx(0.5 / math.sqrt(2.0))}}]
+    assert "refit_with" not in share_alone and share_joint["gap_fit_after"] < share_alone["gap_fit_after"]
+    noise = joint["effects"][0]
+    assert noise["params"]["s"] == pytest.approx(0.5 / math.sqrt(2.0)) and noise["params_first_fit"] == {"s": 0.5}
+    assert joint["final"]["shrink_heldout"] > alone["final"]["shrink_heldout"]
+
+
 def test_refit_pairs_follow_the_registrys_axial_units():
     """The default pairs come from EffectSpec.axial_units: a "sets" effect carries the "static" ones, a "temporal"
     one carries the "sets" then the "static" ones, each in composition order; an unknown kind is refused."""

@@ -64,8 +64,12 @@ class SelectionConfig:
         variance, and a correlated field then adds to it instead of taking its share). The refit is
         kept when it lowers the fit gap and the held-out gap passes the shrink test's significance.
     refit_with : tuple of (str, tuple of str)
-        Backfitting: when the first effect of a pair is refitted, the selected effects named in the second
-        are fitted again on top of the refit in the same trial, which is kept or dropped as a whole. The
+        When the first effect of a pair is tried as a candidate or refitted in backfitting, the selected
+        effects named in the second are fitted again on top of it in the same trial, which is kept or
+        dropped as a whole. A candidate whose field takes a share of the temporal variance is so judged
+        with the axial noise that gives the rest: added alone, the variance would be counted twice, and a
+        later backfit of the axial noise would have to pass the held-out test on a difference the gap's
+        statistics barely see (docs/calibration.md). The
         default, :func:`refit_pairs`, derives the pairs from the registry's
         :attr:`~noise_model.sim.effects.EffectSpec.axial_units`. For effects whose size is a parameter in
         units of the first's output: ``static_noise`` is a fraction of
@@ -368,6 +372,25 @@ class Diagnosis:
         noise = float(np.percentile(null, 95)) if null.size else 0.0
         return max(self.config.min_shrink * current.G, noise)
 
+    def _refit_followers(self, trial, j):
+        """Fit again, on top of ``trial[j]``, the effects of ``trial`` that follow it
+        (:attr:`SelectionConfig.refit_with`), in the order listed.
+
+        Returns
+        -------
+        trial : list of (name, params)
+            A new list with the followers' parameters replaced.
+        refitted : dict
+            Index in ``trial`` -> (name, params) of each follower fitted again.
+        """
+        trial = list(trial)
+        refitted = {}
+        for other in dict(self.config.refit_with).get(trial[j][0], ()):
+            for i in [i for i, (n, _) in enumerate(trial) if n == other and i != j]:
+                trial[i] = (other, dict(self.fit(other, trial[:i] + trial[i + 1:])))
+                refitted[i] = trial[i]
+        return trial, refitted
+
     def _backfit(self, selected, cur_fit, cur_val, effects_out, rnd):
         """Fit every effect selected before the last one again on top of all the others
         (:attr:`SelectionConfig.backfit`), with the effects sized in its units fitted again on top of it
@@ -392,13 +415,8 @@ class Diagnosis:
                 log.append({"name": name, "params": params, "kept": False, "why": "same parameters"})
                 continue
             trial = selected[:j] + [(name, params)] + selected[j + 1:]
-            follow = dict(self.config.refit_with).get(name, ())
-            with_ = {}
             try:
-                for other in follow:
-                    for i in [i for i, (n, _) in enumerate(trial) if n == other and i != j]:
-                        trial[i] = (other, dict(self.fit(other, trial[:i] + trial[i + 1:])))
-                        with_[i] = trial[i]
+                trial, with_ = self._refit_followers(trial, j)
                 r_fit = self.evaluate(trial, self.fit_ids)
             except ValueError as exc:
                 log.append({"name": name, "params": params, "error": str(exc), "kept": False})
@@ -453,26 +471,30 @@ class Diagnosis:
             for name in remaining:
                 try:
                     params = dict(self.fit(name, list(selected)))
+                    # a candidate tried with the selected effects that follow it fitted again on top (a
+                    # field taking a share of the temporal variance with the axial noise that gives the rest)
+                    model, with_ = self._refit_followers(selected + [(name, params)], len(selected))
                 except ValueError as exc:          # no usable fit
-                    fitted.append((name, None, exc))
+                    fitted.append((name, None, exc, None, {}))
                     continue
-                self.prefetch(selected + [(name, params)], self.fit_ids)
-                fitted.append((name, params, None))
+                self.prefetch(model, self.fit_ids)
+                fitted.append((name, params, None, model, with_))
             tried = []
-            for name, params, fit_error in fitted:
+            for name, params, fit_error, model, with_ in fitted:
                 entry = {"name": name}
                 try:
                     if fit_error is not None:
                         raise fit_error
-                    model = selected + [(name, params)]
+                    if with_:
+                        entry["refit_with"] = [{"name": n, "params": p} for n, p in with_.values()]
                     r = self.evaluate(model, self.fit_ids)
                 except ValueError as exc:          # no usable fit, or parameters the effect refuses
                     entry.update(error=str(exc), gap_fit_after=None, shrink_fit=None)
-                    tried.append((entry, None, None))
+                    tried.append((entry, None, None, {}))
                     continue
                 entry.update(params=params, gap_fit_after=r.G,
                              shrink_fit=1.0 - r.G / cur_fit.G if cur_fit.G > 0 else 0.0)
-                tried.append((entry, model, r))
+                tried.append((entry, model, r, with_))
             ok = [t for t in tried if t[2] is not None]
             ok.sort(key=lambda t: t[2].G)
             rnd = {"round": len(rounds) + 1, "gap_fit_before": cur_fit.G, "gap_heldout_before": cur_val.G,
@@ -481,7 +503,7 @@ class Diagnosis:
             if not ok or ok[0][2].G >= cur_fit.G:
                 stop_reason = "no candidate shrinks the fit gap"
                 break
-            entry, model, r_fit = ok[0]
+            entry, model, r_fit, with_ = ok[0]
             r_val = self.evaluate(model, self.validation_ids)
             test = shrink_test(cur_val, r_val, cfg.alpha)
             min_delta = self.min_delta(cur_val)
@@ -497,6 +519,9 @@ class Diagnosis:
                 break
             rnd["accepted"] = True
             selected = model
+            for i, (_, p) in with_.items():      # the followers fitted again in the accepted trial
+                effects_out[i]["params_first_fit"] = effects_out[i].get("params_first_fit", effects_out[i]["params"])
+                effects_out[i]["params"] = p
             effects_out.append({"name": entry["name"], "params": entry["params"], "gap_fit_after": r_fit.G,
                                 "gap_heldout_after": r_val.G,
                                 "shrink_heldout": 1.0 - r_val.G / b_val.G if b_val.G > 0 else 0.0,
