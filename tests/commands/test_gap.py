@@ -308,9 +308,12 @@ def test_an_effect_fitted_before_another_is_fitted_again_on_top_of_it():
 
 
 def _toy_sim_sized(by_id, ids, effects, n_frames, seed):
-    """z_true + s sigma_z (N + q N') + k s sigma_z G: 'noise' (s, the axial noise's scale), 'temporal' (q, a
-    second noise drawn each frame, in units of the axial one), 'static' (k, a field G fixed over the frames,
-    drawn from the seed, in units of the axial one)."""
+    """z_true + s sigma_z (N + q N' + r G_t) + k s sigma_z G: 'noise' (s, the axial noise's scale), 'temporal'
+    (q, a second noise drawn each frame, in units of the axial one), 'share' (r, a field drawn each frame,
+    Gaussian-correlated over 3 px, of unit variance, in units of the axial one), 'static' (k, a field G fixed
+    over the frames, drawn from the seed, in units of the axial one)."""
+    from scipy import ndimage
+
     p = {n: q for n, q in effects}
     s = p.get("noise", {}).get("s", 1.0)
     out = {}
@@ -321,6 +324,9 @@ def _toy_sim_sized(by_id, ids, effects, n_frames, seed):
         d = c.z_true_m[None] + sd * rng.standard_normal((n_frames, H, W))
         if "temporal" in p:
             d = d + p["temporal"]["q"] * sd * rng.standard_normal((n_frames, H, W))
+        if "share" in p:
+            g = ndimage.gaussian_filter(rng.standard_normal((n_frames, H, W)), (0, 3.0, 3.0))
+            d = d + p["share"]["q"] * sd * g / g.std()
         if "static" in p:
             d = d + p["static"]["k"] * sd * rng.standard_normal((1, H, W))
         out[i] = d
@@ -370,26 +376,6 @@ def test_a_field_sized_in_units_of_the_axial_noise_is_refitted_with_it():
                                               ("correlated_noise", ("axial_refit", "static_noise")))
 
 
-def _toy_sim_share(by_id, ids, effects, n_frames, seed):
-    """z_true + s sigma_z N + q s sigma_z G_t: 'noise' (s, the axial noise's scale) and 'share' (q, a field
-    drawn each frame, Gaussian-correlated over 3 px and of unit variance, in units of the axial noise)."""
-    from scipy import ndimage
-
-    p = {n: q for n, q in effects}
-    s = p.get("noise", {}).get("s", 1.0)
-    out = {}
-    for i in ids:
-        c = by_id[i]
-        rng = np.random.default_rng([seed, int(1000 * c.distance_m), int(c.angle_deg)])
-        sd = s * c.sigma_m[None]
-        d = c.z_true_m[None] + sd * rng.standard_normal((n_frames, H, W))
-        if "share" in p:
-            g = ndimage.gaussian_filter(rng.standard_normal((n_frames, H, W)), (0, 3.0, 3.0))
-            d = d + p["share"]["q"] * sd * g / g.std()
-        out[i] = d
-    return out
-
-
 def test_a_candidate_that_takes_a_share_of_the_temporal_variance_is_tried_with_the_axial_noise_refitted():
     # real: axial noise 0.5 / sqrt(2) and a correlated per-frame field of the same size (total 0.5). Round 1
     # selects the axial noise at the whole 0.5 (the field, tried on the reference's noise, is pruned and
@@ -398,7 +384,7 @@ def test_a_candidate_that_takes_a_share_of_the_temporal_variance_is_tried_with_t
     # gap is lower, and the accepted effects carry the refit (its first fit kept as params_first_fit)
     caps, by_id = _toy_set()
     ids = [c.id for c in caps]
-    real = _toy_sim_share(by_id, ids, [("noise", {"s": 0.5 / math.sqrt(2.0)}), ("share", {"q": 1.0})], 12, 5)
+    real = _toy_sim_sized(by_id, ids, [("noise", {"s": 0.5 / math.sqrt(2.0)}), ("share", {"q": 1.0})], 12, 5)
 
     def fit(name, base):
         if name == "noise":
@@ -408,7 +394,7 @@ def test_a_candidate_that_takes_a_share_of_the_temporal_variance_is_tried_with_t
     out = {}
     for cfg in (G.SelectionConfig(refit_with=(("share", ("noise",)),), backfit=False, readmit_after=("noise",)),
                 G.SelectionConfig(refit_with=(), backfit=False, readmit_after=("noise",))):
-        rep = _toy_held_out(caps, by_id, real, fit, sim=_toy_sim_share, config=cfg).run(["noise", "share"]).report
+        rep = _toy_held_out(caps, by_id, real, fit, sim=_toy_sim_sized, config=cfg).run(["noise", "share"]).report
         out[cfg.refit_with] = rep
     joint, alone = out[(("share", ("noise",)),)], out[()]
     assert [e["name"] for e in joint["effects"]] == ["noise", "share"]
