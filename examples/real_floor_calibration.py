@@ -59,6 +59,8 @@ def floor_scores(cs, capture_id: str, model, frames: int | None = None, bands=DE
         Per band: ``band_m``, ``cells``, ``rmse_m``, ``mean_error_m``, ``median_sigma_m``, ``coverage_1sigma``,
         ``coverage_2sigma``.
     """
+    if frames is not None and (isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 1):
+        raise ValueError(f"frames must be a positive integer or None, got {frames!r}")
     cap = next((c for c in cs.captures if c.id == capture_id), None)
     if cap is None:
         raise ValueError(f"{cs.folder}: no capture {capture_id!r}; captures: {', '.join(c.id for c in cs.captures)}")

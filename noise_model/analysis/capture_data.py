@@ -33,6 +33,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from ..checks import check_positive_scalar
 from ..d435 import D435, SensorModel
 from ..sim.targets import (
     EDGE_PX_424, LATERAL_EDGE_SIGMAS, LEFT_BAND_MARGIN_PX_424, REGION_BACKGROUND, REGION_EDGE_LEFT, REGION_EDGE_RIGHT,
@@ -199,6 +200,7 @@ class CaptureData:
         z_true_m : ndarray, shape (H, W), float64
             The rendered true z-depth [m] of every pixel (NaN where the target is not hit).
         """
+        max_depth_m = check_positive_scalar(max_depth_m, f"{self.id}: max_depth_m", unit=" m")
         g = self.geometry
         z_true_m, _ = g.render()
         m = (g.regions() == REGION_INTERIOR) & np.isfinite(z_true_m) & (z_true_m < max_depth_m)

@@ -113,6 +113,9 @@ def test_interior_is_the_interior_region_inside_the_mask():
     mi, _ = CaptureData.from_units(g, c.has_data().astype(np.uint16) * 1500, mask=mask).interior()
     assert np.array_equal(mi, m & mask) and mi.sum() == 40 * 30
     assert not c.interior(max_depth_m=1.0)[0].any()                   # every true depth is beyond 1 m
+    for bad in (0.0, -1.0, float("nan"), "far"):
+        with pytest.raises(ValueError, match="max_depth_m"):
+            c.interior(max_depth_m=bad)
 
 
 def test_capture_data_from_units():

@@ -202,6 +202,9 @@ def test_aims_slam_floor_map_sigmas_from_the_wall_model_are_honest_and_the_paper
     assert far_fit["mean_error_m"] < -0.004 and far_fit["coverage_1sigma"] < 0.68
     with pytest.raises(ValueError, match="no capture"):
         ex["floor_scores"](cs, "nope", wall)
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="frames"):
+            ex["floor_scores"](cs, "f1-8_plane1", wall, frames=bad)
 
 
 @pytest.mark.xfail(strict=True, reason="the white wall's disparity noise is larger than the concrete floor's at the same "

@@ -201,6 +201,8 @@ def test_invalid_band_is_wider_on_a_surface_darker_than_the_frame_by_the_dark_ma
                           E.invalid_band(2.0)(wall.copy(), wall * 0, rng, _ctx(wall)), equal_nan=True)
     with pytest.raises(ValueError, match="dark_margin_px"):
         E.invalid_band(2.0, dark_margin_px=-1.0)
+    with pytest.raises(ValueError, match="one shape"):
+        band_darkness(z_true, theta[:, :100])
 
 
 def test_depth_bias_and_static_pattern_in_disparity():

@@ -63,6 +63,9 @@ def band_darkness(z_true, theta) -> np.ndarray:
     """
     zt = np.asarray(z_true, dtype=np.float64)
     th = np.asarray(theta, dtype=np.float64)
+    if zt.ndim != 2 or th.shape != zt.shape:
+        raise ValueError(f"band_darkness: z_true and theta must be images of one shape (H, W), got {zt.shape} "
+                         f"and {th.shape}")
     hit = _valid(zt)
     b = np.zeros(zt.shape)
     with np.errstate(invalid="ignore", divide="ignore"):
