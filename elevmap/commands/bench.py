@@ -137,9 +137,9 @@ def _stage_ms(d, K, T, P, scale, ws, frames, n, bar) -> dict:
 
 def _bench_noise(frames, reference_frames, n, bar):
     """The noise kernel on :func:`bench_scene`'s board next to its NumPy reference, each stage timed alone; the
-    numba records also carry ``floor_stages`` [ms] and ``floor_points``: the same stages on the mapper's frame
-    (:func:`floor_scene` after the mapper's valid-region margin), so that what makes the two frames' costs differ
-    (points per frame, windows of two surfaces that take the medians) is read off one run."""
+    numba records also carry ``mapper_frame_stages`` [ms] and ``mapper_frame_points``: the same stages on the
+    mapper's frame (:func:`floor_scene` after the mapper's valid-region margin), so that what makes the two
+    frames' costs differ (points per frame, windows of two surfaces that take the medians) is read off one run."""
     out = []
     for width, height in SIZES:
         d, scale, K, T, P = bench_scene(width, height)
@@ -150,12 +150,13 @@ def _bench_noise(frames, reference_frames, n, bar):
         stages = _stage_ms(d, K, T, P, scale, ws, frames, n, bar)
         fd, fK, fT, fP = floor_scene(width, height)
         fd = drop_valid_margin(fd, Camera("d435", fK, width, height).valid_margin_px, nthreads=n)
-        floor_points = len(nm.depth_to_map_points(fd, fK, fT, fP, depth_scale=0.001, workspace=ws, nthreads=n).pixel)
-        floor_stages = _stage_ms(fd, fK, fT, fP, 0.001, ws, frames, n, bar)
+        mapper_frame_points = len(nm.depth_to_map_points(fd, fK, fT, fP, depth_scale=0.001, workspace=ws,
+                                                         nthreads=n).pixel)
+        mapper_frame_stages = _stage_ms(fd, fK, fT, fP, 0.001, ws, frames, n, bar)
         ref = _median_ms(lambda: nm.depth_to_map_points_reference(d, K, T, P, depth_scale=scale),
                          reference_frames, 1, bar)
         out.append(_record("noise", width, height, "numba", fast, npts, frames, n, stages=stages,
-                           floor_stages=floor_stages, floor_points=floor_points))
+                           mapper_frame_stages=mapper_frame_stages, mapper_frame_points=mapper_frame_points))
         out.append(_record("noise", width, height, "numpy", ref, npts, reference_frames, 1))
     return out
 
@@ -415,8 +416,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     dict
         ``{"results": [{"name", "width", "height", "impl", "median_ms", "points_per_s", "frames",
         "threads", ...}, ...], "machine": {...}}``; the ``noise`` numba records carry ``stages`` [ms], each stage of
-        :data:`noise_model.kernels.STAGES` timed alone, and ``floor_stages`` [ms], ``floor_points``: the same on the
-        mapper's floor frame (:func:`_bench_noise`); ``run``/``run_rrd`` records ``frames_per_s`` end to end and
+        :data:`noise_model.kernels.STAGES` timed alone, and ``mapper_frame_stages`` [ms], ``mapper_frame_points``:
+        the same on the mapper's floor frame (:func:`_bench_noise`); ``run``/``run_rrd`` records ``frames_per_s`` end to end and
         ``split_ms`` (:mod:`elevmap.commands.bench_run`); the ``update`` numba records ``stages`` [ms] (the map's
         fusion stage by stage, :func:`_bench_update`), ``floor_ratio`` (to the ``floor`` record of the same points)
         and ``cleanup_ms``; the ``mapper*`` records ``noise_ms`` and ``fusion_ms`` (a frame's split; the numba ones
@@ -507,11 +508,12 @@ def format_table(report: dict) -> str:
             st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
             lines.append(f"noise {r['width']}x{r['height']}: stages alone [ms]: {st} (sum "
                          f"{sum(r['stages'].values()):.2f})")
-            if "floor_stages" in r:
-                st = ", ".join(f"{k} {v:.2f}" for k, v in r["floor_stages"].items())
-                lines.append(f"noise {r['width']}x{r['height']}, the mapper's floor frame ({r['floor_points']} points, "
+            if "mapper_frame_stages" in r:
+                st = ", ".join(f"{k} {v:.2f}" for k, v in r["mapper_frame_stages"].items())
+                lines.append(f"noise {r['width']}x{r['height']}, the mapper's floor frame "
+                             f"({r['mapper_frame_points']} points, "
                              f"the board {r['points']}): stages alone [ms]: {st} (sum "
-                             f"{sum(r['floor_stages'].values()):.2f})")
+                             f"{sum(r['mapper_frame_stages'].values()):.2f})")
     for r in rows:
         if r["name"].startswith("mapper") and r["impl"] == "numba" and "fusion_ms" in r:
             margin = f" (valid-region margin {r['margin_ms']:.2f} ms)" if "margin_ms" in r else ""

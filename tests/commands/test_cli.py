@@ -28,8 +28,8 @@ def test_bench_writes_one_record_per_kernel_size_and_implementation(tmp_path, ca
         if r["name"] == "noise" and r["impl"] == "numba":     # each stage of the kernel timed alone
             assert set(r["stages"]) == set(STAGES) and all(t > 0 for t in r["stages"].values())
             # ... and on the mapper's floor frame, which loses the rows beyond its range: fewer points
-            assert set(r["floor_stages"]) == set(STAGES) and all(t > 0 for t in r["floor_stages"].values())
-            assert 0 < r["floor_points"] < r["points"]
+            assert set(r["mapper_frame_stages"]) == set(STAGES) and all(t > 0 for t in r["mapper_frame_stages"].values())
+            assert 0 < r["mapper_frame_points"] < r["points"]
     printed = capsys.readouterr().out
     assert "speed-up" in printed and "stages alone" in printed and "the mapper's floor frame" in printed
     assert [p.name for p in tmp_path.iterdir()] == ["bench.json"]
