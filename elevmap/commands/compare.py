@@ -25,19 +25,19 @@ The frames are rendered once and fed, unchanged, to each mapper:
 * ``<name>_capped`` (``fitted_capped``, ``paper_capped``, ...): that mapper with the per-frame
   information cap ``FusionParams(max_points_per_frame=cap)`` (default :data:`DEFAULT_CAP` = 1).
 
-Every mapper has the same map settings (:class:`elevmap.pipeline.MappingConfig`: 8 m at 0.04 m,
-visibility clean-up, re-centred on the camera every frame); a capped mapper differs from its base only
-in the cap. At the end of the walk each map is scored by :func:`elevmap.pipeline.map_error` against the
-true height at the centres of its known cells (:func:`closed_truth`: a centre on a step's edge is scored
-against the upper side, as the scene's closed footprints define it), plus the mean sigma over its known cells (sharpness), the
+Every mapper has the same map settings (:class:`elevmap.pipeline.MappingConfig`: 8 m at 0.04 m, visibility
+clean-up, re-centred on the camera every frame); a capped mapper differs from its base only in the cap. At
+the end of the walk each map is scored by :func:`elevmap.pipeline.map_error` against the true height at the
+centres of its known cells (:func:`closed_truth`: a centre on a step's edge is scored against the upper
+side, as the scene's closed footprints define it), plus the mean sigma over its known cells (sharpness), the
 known-cell fraction, the step-edge band's scores (the cells within two cells of a step: error, coverage,
 NLL, and the fraction of the band's seen cells the mapper knows) and the median time per frame
-(``Mapper.integrate``: noise model + fusion + clean-up; the alternatives' time includes the paper's
-kernel, which still deprojects the points, plus their NumPy hook; frames go to the mappers interleaved,
-so a busy machine slows them alike). Mappers know different cells, so the same scores are also given
-over the cells known to *all* mappers (``common``) and at equal coverage (``matched``: each mapper's N
-known cells of smallest variance, N the fewest known cells of any mapper; one point of a
-sparsification curve). Every mapper runs with the variance ceiling :data:`COMPARE_MAX_VARIANCE`
+(``Mapper.integrate``: noise model + fusion + clean-up; the alternatives' time includes the paper's kernel,
+which still deprojects the points, plus their NumPy hook; frames go to the mappers interleaved, so a busy
+machine slows them alike; the scores: :mod:`elevmap.commands.compare_scores`). Mappers know different cells,
+so the same scores are also given over the cells known to *all* mappers (``common``) and at equal coverage
+(``matched``: each mapper's N known cells of smallest variance, N the fewest known cells of any mapper; one
+point of a sparsification curve). Every mapper runs with the variance ceiling :data:`COMPARE_MAX_VARIANCE`
 (elevation_mapping_cupy's 1 m^2) unless the caller sets another: the map's default ceiling would take a
 pessimistic model's far cells away and score it on its near cells only. Several seeds:
 :mod:`elevmap.commands.compare_seeds`.
@@ -89,8 +89,10 @@ from ..frame import Frame
 from ..fileio import check_outputs, json_ready
 from ..map.fusion import FusionParams
 from ..mapper import Camera, Mapper
-from ..pipeline import MappingConfig, edge_band, map_error
+from ..pipeline import MappingConfig
 from .compare_args import REALITIES, apply_settings, camera_settings, parse_mappers, parse_reality, parse_settings
+from .compare_scores import (EDGE_RINGS, FLOOR_MARGIN, _common_scores, _edge_known_fractions, _matched_scores, _score,
+                             _truth_grid, edge_profile, floor_profile, most_confident)
 
 __all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "DEFAULT_CAP", "DISPARITY_SIGMA_PX",
            "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "EDGE_RINGS", "edge_profile", "FLOOR_MARGIN", "floor_profile",
@@ -393,135 +395,6 @@ class _CachedTruth:
 
 
 # ---------------------------------------------------------------------------------------------
-# scoring
-# ---------------------------------------------------------------------------------------------
-def _cell_scores(h, v, truth, mask) -> dict:
-    keys = ("rmse_m", "p95_abs_m", "nll", "coverage_1sigma", "coverage_2sigma", "mean_sigma_m")
-    if not mask.any():
-        return {k: math.nan for k in keys}
-    err = (h - truth)[mask]
-    var = v[mask]
-    z = np.abs(err) / np.sqrt(var)
-    return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "p95_abs_m": float(np.percentile(np.abs(err), 95)),
-            "nll": float(np.mean(0.5 * np.log(2 * np.pi * var) + 0.5 * err ** 2 / var)),
-            "coverage_1sigma": float(np.mean(z <= 1.0)), "coverage_2sigma": float(np.mean(z <= 2.0)),
-            "mean_sigma_m": float(np.mean(np.sqrt(var)))}
-
-
-def _truth_grid(emap: ElevationMap, truth) -> np.ndarray:
-    xs, ys = emap.cell_centres()
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    return np.asarray(truth(np.column_stack([X.ravel(), Y.ravel()])), dtype=np.float64).reshape(X.shape)
-
-
-def _score(emap: ElevationMap, truth, times) -> dict:
-    err = map_error(emap, truth)
-    var = emap.layer("variance")
-    known = emap.is_known()
-    t = np.asarray(times, dtype=np.float64) if len(times) else np.array([math.nan])
-    out = {"rmse_m": err["rmse_m"], "p95_abs_m": err["p95_abs_m"], "nll": err["nll"],
-           "coverage_1sigma": err["coverage_1sigma"], "coverage_2sigma": err["coverage_2sigma"],
-           "mean_sigma_m": float(np.mean(np.sqrt(var[known]))) if known.any() else math.nan,
-           "edge_rmse_m": err["edge_rmse_m"], "flat_rmse_m": err["flat_rmse_m"],
-           "known_fraction": emap.known_fraction(), "ms_per_frame": float(np.median(t)),
-           "median_abs_m": err["median_abs_m"], "mean_error_m": err["mean_error_m"],
-           "flat_coverage_2sigma": err["flat_coverage_2sigma"], "known_cells": err["known_cells"],
-           "edge_cells": err["edge_cells"], "edge_coverage_1sigma": err["edge_coverage_1sigma"],
-           "edge_coverage_2sigma": err["edge_coverage_2sigma"], "edge_nll": err["edge_nll"],
-           "edge_mean_error_m": err["edge_mean_error_m"], "ms_per_frame_p95": float(np.percentile(t, 95))}
-    return out
-
-
-#: A cell whose variance is at most this times the floor counts as at the floor (:func:`floor_profile`).
-FLOOR_MARGIN = 1.1
-
-#: Rings of cells about the step edges for :func:`edge_profile`: (first, last) distance from the edge
-#: band in 4-connected cell steps (0: the band itself, within two cells of a step).
-EDGE_RINGS = ((0, 0), (1, 3), (4, 8), (9, None))
-
-
-def edge_profile(height, variance, truth) -> list[dict]:
-    """Scores of a map's known cells by their distance from the step edges of the true terrain.
-
-    Where the sensor puts an edge's points shows here: edge fattening and bleeding make the band's mean
-    error positive on the lower side, flying pixels and points binned at the wrong surface leave errors
-    rings away from the band.
-
-    Parameters
-    ----------
-    height, variance : ndarray, shape (H, W) [m], [m^2]
-        The map's known layers (NaN where unknown).
-    truth : ndarray, shape (H, W) [m]
-        The true height at the cell centres.
-
-    Returns
-    -------
-    list of dict
-        One per ring of :data:`EDGE_RINGS`: ``rings`` (first, last distance), ``cells``, ``rmse_m``,
-        ``mean_error_m``, ``coverage_1sigma``, ``coverage_2sigma``, ``nll_sum`` (the ring's share of the NLL sum, in nats),
-        ``large_errors`` (cells with |error| > 0.2 m).
-    """
-    band = edge_band(truth)
-    dist = np.full(band.shape, np.iinfo(np.int32).max, dtype=np.int64)
-    cur = band.copy()
-    dist[cur] = 0
-    last = max(r[0] for r in EDGE_RINGS)
-    for step in range(1, last + 1):
-        grown = cur.copy()
-        grown[1:] |= cur[:-1]
-        grown[:-1] |= cur[1:]
-        grown[:, 1:] |= cur[:, :-1]
-        grown[:, :-1] |= cur[:, 1:]
-        dist[grown & ~cur] = step
-        cur = grown
-    known = np.isfinite(height) & np.isfinite(variance)
-    err = np.where(known, height - truth, 0.0)
-    var = np.where(known, variance, 1.0)
-    out = []
-    for lo, hi in EDGE_RINGS:
-        ring = known & (dist >= lo) & ((dist <= hi) if hi is not None else True)
-        e, v = err[ring], var[ring]
-        n = int(ring.sum())
-        out.append({"rings": [lo, hi], "cells": n,
-                    "rmse_m": float(np.sqrt(np.mean(e ** 2))) if n else math.nan,
-                    "mean_error_m": float(np.mean(e)) if n else math.nan,
-                    "coverage_1sigma": float(np.mean(np.abs(e) <= np.sqrt(v))) if n else math.nan,
-                    "coverage_2sigma": float(np.mean(np.abs(e) <= 2.0 * np.sqrt(v))) if n else math.nan,
-                    "nll_sum": float(np.sum(0.5 * np.log(2 * np.pi * v) + 0.5 * e ** 2 / v)),
-                    "large_errors": int(np.sum(np.abs(e) > 0.2))})
-    return out
-
-
-def floor_profile(height, variance, truth, min_variance: float) -> dict:
-    """Scores of the known cells whose variance is at the floor ``min_variance`` [m^2] (within
-    :data:`FLOOR_MARGIN`): such a cell reports the floor whatever its points say, so its coverage shows
-    whether the floor over- or understates the map's most precise cells. ``height``, ``variance``,
-    ``truth``: (H, W) [m], [m^2], [m] as in :func:`edge_profile`. Returns ``cells``, ``fraction`` (of the
-    known cells), ``rmse_m``, ``coverage_1sigma``, ``coverage_2sigma`` (NaN without such cells)."""
-    known = np.isfinite(height) & np.isfinite(variance) & np.isfinite(truth)
-    at = known & (variance <= FLOOR_MARGIN * min_variance)
-    n = int(at.sum())
-    e, s = (height - truth)[at], np.sqrt(variance[at])
-    return {"cells": n, "fraction": float(n / known.sum()) if known.any() else math.nan,
-            "rmse_m": float(np.sqrt(np.mean(e ** 2))) if n else math.nan,
-            "coverage_1sigma": float(np.mean(np.abs(e) <= s)) if n else math.nan,
-            "coverage_2sigma": float(np.mean(np.abs(e) <= 2.0 * s)) if n else math.nan}
-
-
-def _edge_known_fractions(maps: dict, truth) -> tuple[int, dict]:
-    """The step-edge band's cells that some mapper knows (the band the walk saw), and per mapper the
-    fraction of them it knows."""
-    first = next(iter(maps.values()))
-    band = edge_band(_truth_grid(first, truth))
-    seen = np.zeros(band.shape, dtype=bool)
-    for m in maps.values():
-        seen |= m.is_known()
-    seen &= band
-    n = int(seen.sum())
-    return n, {name: (float((m.is_known() & seen).sum() / n) if n else math.nan) for name, m in maps.items()}
-
-
-# ---------------------------------------------------------------------------------------------
 # running
 # ---------------------------------------------------------------------------------------------
 class _Run:
@@ -737,66 +610,3 @@ def _fitted(fitted_model, work, real: dict, key: str, preset: str, width: int, h
     return work.fitted_model(key, sensor=real["sensor"], preset=preset, width=width, height=height,
                              show_progress=show_progress)
 
-
-def _common_scores(maps: dict, truth) -> dict:
-    if not maps:
-        return {"cells": 0, "mappers": {}}
-    first = next(iter(maps.values()))
-    xs, ys = first.cell_centres()
-    for name, m in maps.items():
-        a, b = m.cell_centres()
-        if not (np.array_equal(a, xs) and np.array_equal(b, ys)):
-            raise RuntimeError(f"map of {name!r} is not on the same cells as the others")
-    tr = _truth_grid(first, truth)
-    mask = np.ones(tr.shape, dtype=bool)
-    for m in maps.values():
-        mask &= m.is_known()
-    return {"cells": int(mask.sum()),
-            "mappers": {name: _cell_scores(m.known_layer("elevation"), m.known_layer("variance"), tr, mask)
-                        for name, m in maps.items()}}
-
-
-def most_confident(variance, known, n: int) -> np.ndarray:
-    """Mask of the ``n`` known cells of smallest variance (ties: the lower flat index first).
-
-    Parameters
-    ----------
-    variance : ndarray, shape (H, W) [m^2]
-    known : ndarray of bool, shape (H, W)
-    n : int
-        0 <= n <= known.sum().
-
-    Returns
-    -------
-    ndarray of bool, shape (H, W)
-    """
-    variance = np.asarray(variance, dtype=np.float64)
-    known = np.asarray(known)
-    if known.dtype != bool:
-        raise ValueError(f"known must be a boolean mask, got dtype {known.dtype}")
-    if variance.shape != known.shape:
-        raise ValueError(f"variance {variance.shape} and known {known.shape} differ in shape")
-    idx = np.flatnonzero(known)
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= n <= idx.size:
-        raise ValueError(f"n must be an integer in [0, {idx.size}] (the known cells), got {n!r}")
-    if not np.all(np.isfinite(variance.ravel()[idx])):
-        raise ValueError("variance must be finite in known cells")
-    keep = idx[np.argsort(variance.ravel()[idx], kind="stable")[:n]]
-    out = np.zeros(known.size, dtype=bool)
-    out[keep] = True
-    return out.reshape(known.shape)
-
-
-def _matched_scores(maps: dict, truth) -> dict:
-    """Scores at equal coverage: each mapper over its N most confident known cells (smallest variance),
-    N the fewest known cells of any mapper. What a consumer gets who keeps the N cells its map trusts
-    most; a model whose variances rank its cells by their error well scores better."""
-    if not maps:
-        return {"cells": 0, "mappers": {}}
-    n = min(int(m.is_known().sum()) for m in maps.values())
-    tr = _truth_grid(next(iter(maps.values())), truth)
-    out = {}
-    for name, m in maps.items():
-        v = m.layer("variance")
-        out[name] = _cell_scores(m.layer("elevation"), v, tr, most_confident(v, m.is_known(), n))
-    return {"cells": n, "mappers": out}
