@@ -195,6 +195,7 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
     gain, eg, eg2, alpha, beta, gamma, mixed = cols
     use_pose = P is not None
     P = np.zeros((6, 6)) if P is None else P
+    pose_diag = bool(np.count_nonzero(P - np.diag(np.diag(P))) == 0)     # the pose term's diagonal form
 
     def surfaces(parts):
         return (parts, d, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, M, WINDOW_RADIUS_BLOCKS,
@@ -203,11 +204,11 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
                 ws.flags, ws.speckle_z, ws.row_median)
 
     def points(parts):
-        return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, params, family, NOISE_DEPTH_SIGMAS, b,
-                bool(bin_at_plane), jump_rel, thr_sig, SURFACE_HALF_ROWS, sorting_network(2 * SURFACE_HALF_ROWS + 1),
-                ws.row_median, gain, eg, eg2, alpha, beta, gamma, mixed, ws.offsets, ws.flags, ws.speckle_z,
-                ws.surface_z, MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE, MAX_POINT_VARIANCE, ws.points_map, ws.height_var,
-                ws.horizontal_cov, ws.pixel, ws.outside)
+        return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, pose_diag, params, family,
+                NOISE_DEPTH_SIGMAS, b, bool(bin_at_plane), jump_rel, thr_sig, SURFACE_HALF_ROWS,
+                sorting_network(2 * SURFACE_HALF_ROWS + 1), ws.row_median, gain, eg, eg2, alpha, beta, gamma, mixed,
+                ws.offsets, ws.flags, ws.speckle_z, ws.surface_z, MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE,
+                MAX_POINT_VARIANCE, ws.points_map, ws.height_var, ws.horizontal_cov, ws.pixel, ws.outside)
 
     moments = ("moments", moments_stage, (d, scale, zmin, zmax, up, vp, b, M, ws.rowcount, ws.offsets))
     if not one_by_one:

@@ -61,6 +61,25 @@ def test_kernel_equals_reference_on_random_scenes(seed, dtype, with_pose):
     assert np.all(np.isfinite(a.horizontal_cov))
 
 
+def test_a_diagonal_pose_covariance_gives_the_reference_and_the_full_forms_values():
+    """A pose covariance without off-diagonal entries takes the pose term's diagonal form: equal to the
+    reference, and to the full form (forced by an off-diagonal entry of 1e-300, which changes no value)
+    up to rounding."""
+    rng = np.random.default_rng(7)
+    H, W = 97, 131
+    d, scale = hostile_depth(rng, H, W, np.uint16)
+    K = D435.intrinsics(848, 480) * np.array([[W / 848], [H / 480], [1.0]])
+    T = random_transform(rng)
+    P = np.diag(np.array([1e-4, 2e-4, 3e-4, 4e-5, 5e-5, 6e-5]))
+    a = depth_to_map_points(d, K, T, P, depth_scale=scale)
+    assert_same(a, depth_to_map_points_reference(d, K, T, P, depth_scale=scale))
+    P_full = P.copy()
+    P_full[3, 4] = P_full[4, 3] = 1e-300
+    assert_same(a, depth_to_map_points(d, K, T, P_full, depth_scale=scale), rtol=1e-12)
+    # the pose term is there: without it the horizontal variances are smaller
+    assert np.all(depth_to_map_points(d, K, T, None, depth_scale=scale).horizontal_cov[:, 0] < a.horizontal_cov[:, 0])
+
+
 def test_a_speckle_is_placed_at_its_neighbours_depth_as_uncertain_as_its_distance_from_them():
     """A lone pixel 1.5 m in front of a wall at 2 m (the paper's noise at grazing incidence puts such
     pixels anywhere): it lands on the wall, at the 2 m of its neighbours, with an axial variance of at
