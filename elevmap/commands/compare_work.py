@@ -39,9 +39,9 @@ FIT_SEED = 0
 #: Version of the cache's file layout.
 CACHE_FORMAT = "elevmap-compare-cache/1"
 #: What a cached characterisation measured: 3 adds the per-frame error and its sigma_z fit the model file
-#: carries (:mod:`noise_model.analysis.frame_error`), so a model fitted before them is fitted again (from
-#: the same capture set).
-CHARACTERIZE_VERSION = 3
+#: carries (:mod:`noise_model.analysis.frame_error`), 4 counts the frame-wide offset in that error, so a
+#: model fitted before them is fitted again (from the same capture set).
+CHARACTERIZE_VERSION = 4
 
 
 def reality_key(reality: str, preset: str = "default", effects_digest: str | None = None) -> str:

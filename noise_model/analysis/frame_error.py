@@ -16,14 +16,24 @@ of :mod:`noise_model.analysis.effect_fits.correlation`, which the gap's direct m
     T(h) = lag covariance of d_t - mean_t(d) less each frame's mean over the interior, times F / (F - 1)
     S(h) = the static part's lag covariance (the temporal mean's residual about its best plane, less the
            temporal share T(h) / F)
-    C(h) = T(h) + S(h),  ratio = C(0) / T(0),  rho(h) = C(h) / C(0)
+    O    = the frame-wide offset's variance: the covariance over frames of the mean of d_t - mean_t(d) over
+           the interior's left third of columns with its mean over the right third
+    C(h) = T(h) + S(h),  ratio = (C(0) + O) / T(0),  rho(h) = C(h) / C(0)
 
 and the Gaussian correlation length l of rho(h) = exp(-h^2 / (2 l^2)) over the lags 1-11 px, where the
 lag-1 correlation is at least :data:`MIN_LAG1_CORRELATION` (below, the pixels count as independent:
-l = 0). The frame-wide offset is left out as in the model's own fit (which removes each frame's plane
-motion). The residual is taken about the best plane of the temporal mean, so a capture of fitted
+l = 0). The residual is taken about the best plane of the temporal mean, so a capture of fitted
 geometry (no measured distance) is measured the same way: a plane fitted to its own frames absorbs the
 board-scale error, not a pattern a few pixels across.
+
+The frame-wide offset (every pixel of a frame off by the same disparity) is part of each frame's error
+as a map sees it: a cell's points of one frame share it, and the next frame draws another. The axial
+model's fit removes it (it removes each frame's plane motion), so the ratio carries it. It is measured
+as a covariance of two disjoint parts of the frame, not as the variance of the frame's mean, because
+that variance also holds the pixels' own noise averaged over the interior; the middle third between the
+two parts keeps the pixel-scale correlation (a few px) out of the covariance. The correlation length
+describes the pixel-scale part C only: the offset is common to the whole frame, and a map cell's points
+of one frame lie within a few correlation lengths, where the offset adds to C(h) at every lag alike.
 
 Pooled over captures (:func:`pooled_frame_error`): the medians of the ratio and of the length (captures
 with no correlation count as 0).
@@ -41,7 +51,7 @@ import numpy as np
 from .effect_fits.correlation import fit_gaussian_cov, lag_cov, static_lag_cov
 
 __all__ = ["FRAME_ERROR_LAGS", "MIN_LAG1_CORRELATION", "MIN_FRAMES", "MAX_RATIO", "capture_frame_error",
-           "pooled_frame_error"]
+           "frame_offset_variance", "pooled_frame_error"]
 
 #: Lags [px] of the correlation: the span of a map cell's pixels (a 4 cm cell is 2-20 px across).
 FRAME_ERROR_LAGS = (0, 1, 2, 3, 4, 6, 8, 11)
@@ -64,7 +74,7 @@ def capture_frame_error(c) -> dict:
     -------
     dict
         ``id``, ``distance_m``, ``temporal_var_d_px2`` (T(0)), ``static_var_d_px2`` (S(0), >= 0),
-        ``ratio`` (C(0) / T(0), >= 1), ``rho`` (rho(h) over :data:`FRAME_ERROR_LAGS`), ``length_px``
+        ``offset_var_d_px2`` (O, >= 0; :func:`frame_offset_variance`), ``ratio`` ((C(0) + O) / T(0), >= 1), ``rho`` (rho(h) over :data:`FRAME_ERROR_LAGS`), ``length_px``
         (0 when not correlated); ``reason`` (str) and NaN values when fewer than 100 interior pixels have
         data in every frame, the capture has fewer than :data:`MIN_FRAMES` frames or the ratio exceeds
         :data:`MAX_RATIO`.
@@ -72,7 +82,7 @@ def capture_frame_error(c) -> dict:
     g = c.geometry
     nan = float("nan")
     row = {"id": c.id, "distance_m": float(g.distance_m), "temporal_var_d_px2": nan, "static_var_d_px2": nan,
-           "ratio": nan, "rho": [nan] * len(FRAME_ERROR_LAGS), "length_px": nan, "reason": None}
+           "offset_var_d_px2": nan, "ratio": nan, "rho": [nan] * len(FRAME_ERROR_LAGS), "length_px": nan, "reason": None}
     F = c.n_frames
     m, z = c.interior()
     fb = g.fb_px_m
@@ -90,7 +100,8 @@ def capture_frame_error(c) -> dict:
                          f"{MIN_FRAMES} frames)")
         return row
     dev = d[:, ok] - d[:, ok].mean(axis=0)
-    dev -= dev.mean(axis=1)[:, None]
+    dev_mean = dev.mean(axis=1)
+    dev -= dev_mean[:, None]
     x = np.zeros((F,) + ok.shape)
     x[:, ok] = dev
     T, _ = lag_cov(x, ok, FRAME_ERROR_LAGS)
@@ -108,14 +119,47 @@ def capture_frame_error(c) -> dict:
                          "the target is not the plane the capture names")
         return row
     rho = C / C[0]
-    row.update(temporal_var_d_px2=float(T[0]), static_var_d_px2=float(S[0]), ratio=float(C[0] / T[0]),
-               rho=[float(r) for r in rho])
+    offset = frame_offset_variance(dev + dev_mean[:, None], np.nonzero(ok)[1])
+    row.update(temporal_var_d_px2=float(T[0]), static_var_d_px2=float(S[0]), offset_var_d_px2=offset,
+               ratio=float((C[0] + offset) / T[0]), rho=[float(r) for r in rho])
     if rho[1] < MIN_LAG1_CORRELATION:
         row["length_px"] = 0.0
     else:
         _, ell = fit_gaussian_cov(np.array(FRAME_ERROR_LAGS[1:], dtype=float), rho[1:], lmin=0.3, lmax=80.0)
         row["length_px"] = float(ell)
     return row
+
+
+def frame_offset_variance(dev_px, cols) -> float:
+    """Variance [px^2] of the error every pixel of a frame shares (the frame-wide offset).
+
+    Parameters
+    ----------
+    dev_px : ndarray, shape (F, M)
+        Each of M pixels' disparity in F frames less its mean over the frames [px] (F >= 2).
+    cols : ndarray of int, shape (M,)
+        The pixels' image columns.
+
+    Returns
+    -------
+    float
+        cov_t(a_t, b_t) >= 0, a_t and b_t frame t's mean of ``dev_px`` over the pixels in the left and the
+        right third of the columns (module docstring): the pixels' own noise, independent between the two
+        parts, leaves the covariance unbiased where the variance of the frame's mean would hold it. 0 when
+        a part is empty or the covariance is negative (an offset too small to measure).
+    """
+    dev_px = np.asarray(dev_px, dtype=np.float64)
+    cols = np.asarray(cols)
+    if dev_px.ndim != 2 or cols.shape != (dev_px.shape[1],) or dev_px.shape[0] < 2:
+        raise ValueError(f"dev_px must have shape (frames >= 2, pixels) and cols one column per pixel, got "
+                         f"{dev_px.shape} and {cols.shape}")
+    lo, hi = np.quantile(cols, [1.0 / 3.0, 2.0 / 3.0]) if cols.size else (0.0, 0.0)
+    left, right = cols < lo, cols > hi
+    if not (left.any() and right.any()):
+        return 0.0
+    a, b = dev_px[:, left].mean(axis=1), dev_px[:, right].mean(axis=1)
+    cov = float(np.sum((a - a.mean()) * (b - b.mean())) / (dev_px.shape[0] - 1))
+    return max(cov, 0.0)
 
 
 def pooled_frame_error(rows) -> dict:
