@@ -195,7 +195,8 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
     gain, eg, eg2, alpha, beta, gamma, mixed = cols
     use_pose = P is not None
     P = np.zeros((6, 6)) if P is None else P
-    pose_diag = bool(np.count_nonzero(P - np.diag(np.diag(P))) == 0)     # the pose term's diagonal form
+    # the pose term's form as a type (points_stage): None for a diagonal P (or none), True for a full one
+    pose_form = None if np.count_nonzero(P - np.diag(np.diag(P))) == 0 else True
 
     def surfaces(parts):
         return (parts, d, scale, zmin, zmax, params, family, jump_rel, thr_sig, b, M, WINDOW_RADIUS_BLOCKS,
@@ -204,7 +205,7 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
                 ws.flags, ws.speckle_z, ws.row_median)
 
     def points(parts):
-        return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, pose_diag, params, family,
+        return (parts, d, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, pose_form, params, family,
                 NOISE_DEPTH_SIGMAS, b, bool(bin_at_plane), jump_rel, thr_sig, SURFACE_HALF_ROWS,
                 sorting_network(2 * SURFACE_HALF_ROWS + 1), ws.row_median, gain, eg, eg2, alpha, beta, gamma, mixed,
                 ws.offsets, ws.flags, ws.speckle_z, ws.surface_z, MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE,

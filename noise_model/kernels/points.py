@@ -20,121 +20,8 @@ from .surfaces import LEFT_EDGE, RIGHT_EDGE, SPECKLE, surface_medians_block_row
 __all__: list[str] = []
 
 
-@njit(**JIT)
-def _row_points(full_pose, k, k0, v, by, vv, base, cu, cz, cf, up, gain_px, eg_px, eg2_px, alpha_px, beta_px, gamma_px,
-                mixed_px, speckle_z, surface_z, model, lateral, zmin, zmax, noise_sigmas, bin_at_plane, R, t, bvec, Pe,
-                bounds, pts, hvar, hcov, pix):
-    """Stage 4's arithmetic over the k compacted valid pixels (cu, cz, cf) of row v, written to columns
-    k0 .. k0 + k - 1 of the outputs; returns how many of them lie outside the bounds.
-
-    Inlined into :func:`points_stage` once per value of ``full_pose`` (a constant at each call), so that
-    each copy of the loop carries only its own pose term and vectorises without a select between both:
-    ``full_pose`` adds J P J^T with every entry of P; otherwise P is diagonal (or zero, without a pose
-    covariance), and its products with the zero entries are left out. The entries left are summed in the
-    same order, and a product with an exact zero adds an exact zero, so the two forms agree on a diagonal
-    P. ``model`` (c0, c1, c2, disp), ``lateral`` (sigma_L^2, sigma_R^2, max of both, pixel variance in x and
-    y per z^2), ``R`` (the nine entries of R_map_cam by row), ``t`` (t_map_cam), ``bvec`` (R[:, 1] v' +
-    R[:, 2]), ``Pe`` (the pose covariance's entries read below), ``bounds`` (coord_max, var_min, var_max):
-    the values of :func:`points_stage` they are named after.
-    """
-    c0, c1, c2, disp = model
-    sL2, sR2, sLR2, pix_var_x, pix_var_y = lateral
-    R00, R01, R02, R10, R11, R12, R20, R21, R22 = R
-    t0, t1, t2 = t
-    b0, b1, b2 = bvec
-    P00, P01, P03, P04, P05, P11, P13, P14, P15, P22, P23, P24, P33, P34, P35, P44, P45, P55 = Pe
-    coord_max, var_min, var_max = bounds
-    nan = np.nan
-    inf = np.inf
-    nout = 0
-    for j in range(np.uint64(k)):
-        u = cu[j]
-        z = cz[j]
-        f = cf[j]
-        # a speckle: its depth is its neighbours' median, and it is as uncertain as its distance from
-        # them (selects, so that the loop still vectorises)
-        sp = (f & SPECKLE) != 0
-        md = speckle_z[v, u] if sp else z
-        dev2 = (z - md) * (z - md)
-        z = md
-        zz = z * z
-        # lateral x variance: sigma_L^2 / sigma_R^2 on edges, else the pixel footprint
-        left = (f & LEFT_EDGE) != 0
-        right = (f & RIGHT_EDGE) != 0
-        var_x = (sLR2 if right else sL2) if left else (sR2 if right else zz * pix_var_x)
-        var_y = zz * pix_var_y
-        # sigma_z at the local plane's depth when the pixel lies within noise_sigmas of it (a
-        # weight must not depend on the pixel's own noise), else at its own depth. Both
-        # candidates are evaluated and one selected, so that each square root is taken once.
-        g = gain_px[by, u]
-        wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
-        zf = 1.0 / wf if wf > 0.0 else z
-        zf = zf if (zf >= zmin) & (zf <= zmax) else z
-        sf = max(sigma_model(zf, g, c0, c1, c2, disp), sigma_model(z, g, c0, c1, c2, disp))
-        at_plane = abs(z - zf) <= noise_sigmas * sf
-        zs = zf if at_plane else z
-        # E[sigma_z^2] over the uncertainty of theta (noise_model.axial_variance)
-        e_f = expected_model(zf, eg_px[by, u], eg2_px[by, u], c0, c1, c2, disp)
-        e_z = expected_model(z, eg_px[by, u], eg2_px[by, u], c0, c1, c2, disp)
-        s2 = max(e_f if at_plane else e_z, dev2)
-        # in a window of two surfaces the model's sigma is the fit's across both (its angle,
-        # its plane): the pixel's distance from its own surface's median is a floor, as a
-        # speckle's from its neighbours (a speckle: its replaced depth, so 0; NaN: not mixed)
-        zr = z if sp else (surface_z[v, u] if mixed_px[by, u] > 0.0 else nan)
-        dr = z - zr
-        s2 = max(s2, dr * dr) if dr == dr else s2
-        ru = up[u]
-        a0 = R00 * ru + b0
-        a1 = R10 * ru + b1
-        a2 = R20 * ru + b2
-        cxx = s2 * a0 * a0 + var_x * R00 * R00 + var_y * R01 * R01
-        cxy = s2 * a0 * a1 + var_x * R00 * R10 + var_y * R01 * R11
-        cyy = s2 * a1 * a1 + var_x * R10 * R10 + var_y * R11 * R11
-        czz = s2 * a2 * a2 + var_x * R20 * R20 + var_y * R21 * R21
-        q0 = z * a0                          # camera centre -> point, map frame
-        q1 = z * a1
-        q2 = z * a2
-        if full_pose:                        # J P J^T in full
-            cxx += (P00 + 2.0 * (q2 * P04 - q1 * P05) + q2 * q2 * P44 - 2.0 * q1 * q2 * P45
-                    + q1 * q1 * P55)
-            cyy += (P11 + 2.0 * (q0 * P15 - q2 * P13) + q2 * q2 * P33 - 2.0 * q0 * q2 * P35
-                    + q0 * q0 * P55)
-            czz += (P22 + 2.0 * (q1 * P23 - q0 * P24) + q1 * q1 * P33 - 2.0 * q0 * q1 * P34
-                    + q0 * q0 * P44)
-            cxy += (P01 - q2 * P03 + q0 * P05
-                    + q2 * (P14 - q2 * P34 + q0 * P45)
-                    - q1 * (P15 - q2 * P35 + q0 * P55))
-        else:                                # P diagonal (or zero): the terms left of the full form
-            cxx += P00 + q2 * q2 * P44 + q1 * q1 * P55
-            cyy += P11 + q2 * q2 * P33 + q0 * q0 * P55
-            czz += P22 + q1 * q1 * P33 + q0 * q0 * P44
-            cxy += P01 - q1 * (q0 * P55)
-        i = k0 + j
-        # x, y where the ray meets the local plane (the cell the pixel looks at); in a window of
-        # two surfaces at the nearer of the plane and the surface median (a speckle: its
-        # replaced depth); z from the measured depth (see MapPoints)
-        zb = (min(zf, zr) if mixed_px[by, u] > 0.0 else zs) if bin_at_plane else z
-        x = zb * a0 + t0
-        y = zb * a1 + t1
-        zm = q2 + t2
-        pts[0, i] = x
-        pts[1, i] = y
-        pts[2, i] = zm
-        hvar[i] = czz
-        hcov[0, i] = cxx
-        hcov[1, i] = cxy
-        hcov[2, i] = cyy
-        pix[i] = base + np.int64(u)
-        # the predicate of count_outside (NaN fails every comparison, so it counts)
-        ok = ((abs(x) <= coord_max) & (abs(y) <= coord_max) & (abs(zm) <= coord_max) & (czz >= var_min)
-              & (czz <= var_max) & (cxx >= 0.0) & (cxx < inf) & (cyy >= 0.0) & (cyy < inf)
-              & (abs(cxy) < inf))
-        nout += 0 if ok else 1
-    return nout
-
-
 @njit(parallel=True, **JIT)
-def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, pose_diag, params, family,
+def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, pose_form, params, family,
                  noise_sigmas, b,
                  bin_at_plane, jump_rel, thr_sig, rows_half, surface_net, rowmed, gain_px, eg_px, eg2_px, alpha_px,
                  beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z, coord_max, var_min, var_max, pts,
@@ -161,9 +48,13 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
         T_map_cam.
     P : ndarray, shape (6, 6)
         Pose covariance (translation [m^2], rotation [rad^2]), used where ``use_pose``.
-    pose_diag : bool
-        Every off-diagonal entry of P is zero (a common odometry covariance): the pose term's diagonal form
-        (:func:`_row_points`). A flag, not a type, so that no second specialisation compiles.
+    pose_form : None or True
+        True: the pose term J P J^T with every entry of P. None: P is diagonal (a common odometry covariance),
+        or zero without a pose covariance, and its products with the zero entries are left out; the entries
+        left are summed in the same order, and a product with an exact zero adds an exact zero, so both forms
+        agree on a diagonal P. As ``family``, its type tells numba which: each compiles to a loop with only
+        its own pose term (a flag would make the vectorised loop compute both and select). The mapper's usual
+        inputs (a diagonal pose covariance or none) share one compiled kernel.
     params : ndarray
         SensorModel.params_array.
     family : None or True
@@ -217,12 +108,10 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
     Pe = (p * P[0, 0], p * P[0, 1], p * P[0, 3], p * P[0, 4], p * P[0, 5], p * P[1, 1], p * P[1, 3], p * P[1, 4],
           p * P[1, 5], p * P[2, 2], p * P[2, 3], p * P[2, 4], p * P[3, 3], p * P[3, 4], p * P[3, 5], p * P[4, 4],
           p * P[4, 5], p * P[5, 5])
-    full_pose = use_pose and not pose_diag
-    model = (c0, c1, c2, disp)
-    lateral = (sL2, sR2, sLR2, pix_var_x, pix_var_y)
-    Rm = (R00, R01, R02, R10, R11, R12, R20, R21, R22)
-    tm = (t0, t1, t2)
-    bounds = (coord_max, var_min, var_max)
+    P00, P01, P03, P04, P05, P11, P13, P14, P15, P22, P23, P24, P33, P34, P35, P44, P45, P55 = Pe
+    full_pose = pose_form is not None
+    nan = np.nan
+    inf = np.inf
     for ib in prange(nby):
         by = interleaved(ib, nby)
         if parts & SURFACE_MEDIANS:
@@ -249,20 +138,98 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
                 cf[k] = f
                 k += 1 if (z >= zmin) & (z <= zmax) else 0
 
-            # (b) the arithmetic over the compacted pixels (:func:`_row_points`). Unsigned output index: no
-            # wraparound select, so the stores are contiguous
+            # (b) the arithmetic over the compacted pixels. Unsigned output index: no wraparound select, so
+            # the stores are contiguous
             k0 = np.uint64(offsets[v])
             vv = vp[v]
-            bvec = (R01 * vv + R02, R11 * vv + R12, R21 * vv + R22)     # a = R r = R[:, 0] u' + bvec
+            b0 = R01 * vv + R02      # a = R r = R[:, 0] u' + (R[:, 1] v' + R[:, 2])
+            b1 = R11 * vv + R12
+            b2 = R21 * vv + R22
             base = v * W
-            if full_pose:
-                nout = _row_points(True, k, k0, v, by, vv, base, cu, cz, cf, up, gain_px, eg_px, eg2_px, alpha_px,
-                                   beta_px, gamma_px, mixed_px, speckle_z, surface_z, model, lateral, zmin, zmax,
-                                   noise_sigmas, bin_at_plane, Rm, tm, bvec, Pe, bounds, pts, hvar, hcov, pix)
-            else:
-                nout = _row_points(False, k, k0, v, by, vv, base, cu, cz, cf, up, gain_px, eg_px, eg2_px, alpha_px,
-                                   beta_px, gamma_px, mixed_px, speckle_z, surface_z, model, lateral, zmin, zmax,
-                                   noise_sigmas, bin_at_plane, Rm, tm, bvec, Pe, bounds, pts, hvar, hcov, pix)
+            nout = 0
+            for j in range(np.uint64(k)):
+                u = cu[j]
+                z = cz[j]
+                f = cf[j]
+                # a speckle: its depth is its neighbours' median, and it is as uncertain as its distance from
+                # them (selects, so that the loop still vectorises)
+                sp = (f & SPECKLE) != 0
+                md = speckle_z[v, u] if sp else z
+                dev2 = (z - md) * (z - md)
+                z = md
+                zz = z * z
+                # lateral x variance: sigma_L^2 / sigma_R^2 on edges, else the pixel footprint
+                left = (f & LEFT_EDGE) != 0
+                right = (f & RIGHT_EDGE) != 0
+                var_x = (sLR2 if right else sL2) if left else (sR2 if right else zz * pix_var_x)
+                var_y = zz * pix_var_y
+                # sigma_z at the local plane's depth when the pixel lies within noise_sigmas of it (a
+                # weight must not depend on the pixel's own noise), else at its own depth. Both
+                # candidates are evaluated and one selected, so that each square root is taken once.
+                g = gain_px[by, u]
+                wf = alpha_px[by, u] * up[u] + beta_px[by, u] * vv + gamma_px[by, u]
+                zf = 1.0 / wf if wf > 0.0 else z
+                zf = zf if (zf >= zmin) & (zf <= zmax) else z
+                sf = max(sigma_model(zf, g, c0, c1, c2, disp), sigma_model(z, g, c0, c1, c2, disp))
+                at_plane = abs(z - zf) <= noise_sigmas * sf
+                zs = zf if at_plane else z
+                # E[sigma_z^2] over the uncertainty of theta (noise_model.axial_variance)
+                e_f = expected_model(zf, eg_px[by, u], eg2_px[by, u], c0, c1, c2, disp)
+                e_z = expected_model(z, eg_px[by, u], eg2_px[by, u], c0, c1, c2, disp)
+                s2 = max(e_f if at_plane else e_z, dev2)
+                # in a window of two surfaces the model's sigma is the fit's across both (its angle,
+                # its plane): the pixel's distance from its own surface's median is a floor, as a
+                # speckle's from its neighbours (a speckle: its replaced depth, so 0; NaN: not mixed)
+                zr = z if sp else (surface_z[v, u] if mixed_px[by, u] > 0.0 else nan)
+                dr = z - zr
+                s2 = max(s2, dr * dr) if dr == dr else s2
+                ru = up[u]
+                a0 = R00 * ru + b0
+                a1 = R10 * ru + b1
+                a2 = R20 * ru + b2
+                cxx = s2 * a0 * a0 + var_x * R00 * R00 + var_y * R01 * R01
+                cxy = s2 * a0 * a1 + var_x * R00 * R10 + var_y * R01 * R11
+                cyy = s2 * a1 * a1 + var_x * R10 * R10 + var_y * R11 * R11
+                czz = s2 * a2 * a2 + var_x * R20 * R20 + var_y * R21 * R21
+                q0 = z * a0                          # camera centre -> point, map frame
+                q1 = z * a1
+                q2 = z * a2
+                if full_pose:                        # J P J^T in full (its own compiled loop)
+                    cxx += (P00 + 2.0 * (q2 * P04 - q1 * P05) + q2 * q2 * P44 - 2.0 * q1 * q2 * P45
+                            + q1 * q1 * P55)
+                    cyy += (P11 + 2.0 * (q0 * P15 - q2 * P13) + q2 * q2 * P33 - 2.0 * q0 * q2 * P35
+                            + q0 * q0 * P55)
+                    czz += (P22 + 2.0 * (q1 * P23 - q0 * P24) + q1 * q1 * P33 - 2.0 * q0 * q1 * P34
+                            + q0 * q0 * P44)
+                    cxy += (P01 - q2 * P03 + q0 * P05
+                            + q2 * (P14 - q2 * P34 + q0 * P45)
+                            - q1 * (P15 - q2 * P35 + q0 * P55))
+                else:                                # P diagonal (or zero): the terms left of the full form
+                    cxx += P00 + q2 * q2 * P44 + q1 * q1 * P55
+                    cyy += P11 + q2 * q2 * P33 + q0 * q0 * P55
+                    czz += P22 + q1 * q1 * P33 + q0 * q0 * P44
+                    cxy += P01 - q1 * (q0 * P55)
+                i = k0 + j
+                # x, y where the ray meets the local plane (the cell the pixel looks at); in a window of
+                # two surfaces at the nearer of the plane and the surface median (a speckle: its
+                # replaced depth); z from the measured depth (see MapPoints)
+                zb = (min(zf, zr) if mixed_px[by, u] > 0.0 else zs) if bin_at_plane else z
+                x = zb * a0 + t0
+                y = zb * a1 + t1
+                zm = q2 + t2
+                pts[0, i] = x
+                pts[1, i] = y
+                pts[2, i] = zm
+                hvar[i] = czz
+                hcov[0, i] = cxx
+                hcov[1, i] = cxy
+                hcov[2, i] = cyy
+                pix[i] = base + np.int64(u)
+                # the predicate of count_outside (NaN fails every comparison, so it counts)
+                ok = ((abs(x) <= coord_max) & (abs(y) <= coord_max) & (abs(zm) <= coord_max) & (czz >= var_min)
+                      & (czz <= var_max) & (cxx >= 0.0) & (cxx < inf) & (cyy >= 0.0) & (cyy < inf)
+                      & (abs(cxy) < inf))
+                nout += 0 if ok else 1
             outside[v] = nout
     total = 0
     if parts & POINTS:
