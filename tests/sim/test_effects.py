@@ -258,6 +258,24 @@ def test_static_noise_fit_tells_the_static_part_from_a_temporal_one():
     assert ok, f"fit {fit}, errors {errors}"
 
 
+@pytest.mark.parametrize("name, size_key, small, large", [("static_noise", "sigma_z_fraction", 0.6, 2.4),
+                                                            ("static_pattern", "sigma_px", 0.03, 0.12)])
+def test_static_fits_give_the_typical_captures_size(name, size_key, small, large):
+    # six walls with a static field of one size and two (the near fronto-parallel ones, standing for the
+    # grazing captures of a physical D435, whose static error the effect's form cannot follow) with one four
+    # times larger: the fit gives the six's size and length. Pooled over the captures' pixel pairs, the two
+    # set it: sqrt((6 small^2 + 2 (4 small)^2) / 8) = 2.1 small.
+    geoms = [_wall(d, y) for d in (0.8, 1.2, 1.6, 2.0) for y in (0.0, 40.0)]
+    real = []
+    for i, g in enumerate(geoms):
+        size = large if g.distance_m < 1.5 and g.yaw_deg == 0 else small
+        eff = E.make_effect(name, **{size_key: size, "length_px": 4.0, "seed": 3})
+        real.append(CaptureData.from_units(g, simulate_capture(g, 6, np.random.default_rng([31, i]), effects=[eff])))
+    fit = E.fit_effect(name, real, seed=5)
+    ok, errors = E.within_tolerance(name, {size_key: small, "length_px": 4.0, "seed": 0}, fit)
+    assert ok, f"fit {fit}, errors {errors}"
+
+
 def test_disparity_noise_and_outliers_in_disparity_units():
     rng = np.random.default_rng(2)
     z_true = np.full((240, 424), 2.0)

@@ -62,6 +62,50 @@ def fit_gaussian_cov(lags, excess, weights=None, lmin=0.3, lmax=60.0):
     return best[1], best[2]
 
 
+def typical_capture_fit(rows, lags, use=slice(None), lmin=0.5, lmax=80.0):
+    """A exp(-h^2 / (2 l^2)) of the typical capture: each capture's excess covariance fitted on its own
+    (:func:`fit_gaussian_cov`), then the median over captures of A and of l.
+
+    A static error whose size the effect cannot express varies from capture to capture (on a physical
+    D435 it grows with the incidence angle and the disparity gradient, several-fold at 60-75 deg): a
+    covariance pooled by pair counts is a mean of variances, dominated by the few captures where it is
+    largest, and gives every capture a field larger than most of them show. The median over captures
+    is the size of the typical capture (the one a median over captures of the direct measurement
+    compares with) and equals the pooled one when the field is the same in every capture. Lengths of
+    captures with no excess (A = 0, where l is undefined) are left out of the length's median.
+
+    Parameters
+    ----------
+    rows : sequence of (excess, pairs)
+        Per capture, the excess lag covariance (len(lags),) and its pair counts; captures with a
+        non-finite excess at a lag of ``use`` are left out.
+    lags : array (L,)
+        Lags [px].
+    use : slice or index array
+        The lags fitted (lag 0 is left out where white noise adds to it).
+    lmin, lmax : float
+        Range of l [px].
+
+    Returns
+    -------
+    (A, l) : float, float
+        A >= 0 in the excess's units; (0, lmin) when no capture qualifies.
+    """
+    lags = np.asarray(lags, dtype=float)
+    amps, lengths = [], []
+    for exc, n in rows:
+        e, w = np.asarray(exc, dtype=float)[use], np.asarray(n, dtype=float)[use]
+        if not (np.all(np.isfinite(e)) and np.all(w > 0)):
+            continue
+        A, ell = fit_gaussian_cov(lags[use], e, lmin=lmin, lmax=lmax)
+        amps.append(A)
+        if A > 0:
+            lengths.append(ell)
+    if not amps:
+        return 0.0, float(lmin)
+    return float(np.median(amps)), float(np.median(lengths)) if lengths else float(lmin)
+
+
 # ---- correlated_noise -----------------------------------------------------------------------------
 _CORR_LAGS = (0, 1, 2, 3, 4, 6, 8, 11)
 #: Frames whose lag products the correlated-noise fit averages (the temporal mean uses all of them).
@@ -199,25 +243,6 @@ def _fit_correlated_noise(real, base, model, rois=None, base_effects=(), **_):
 _STATIC_LAGS = (0, 1, 2, 3, 4, 6, 8, 11, 15, 20, 26)
 
 
-def _detrended_mean_residual(c, m, fb, dtrue):
-    """Temporal mean of the disparity residual, minus its best plane a + b u + c v over the mask."""
-    d = fb / c.depth_m
-    v = np.isfinite(d)
-    n = np.sum(v, axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(n >= max(2, c.n_frames // 2), np.where(v, d, 0.0).sum(axis=0) / n, np.nan)
-    r = mean - dtrue
-    ok = m & np.isfinite(r)
-    vv, uu = np.nonzero(ok)
-    if vv.size < 50:
-        return None
-    A = np.column_stack([np.ones(vv.size), uu, vv]).astype(np.float64)
-    coef = np.linalg.lstsq(A, r[ok], rcond=None)[0]
-    out = np.full(r.shape, np.nan)
-    out[ok] = r[ok] - A @ coef
-    return out
-
-
 def _single_frame_residual(c, m, fb):
     """One frame's disparity minus its best plane (:func:`_plane_residual`), values more than 8 robust
     sigmas from 0 (outliers) set to NaN; None when fewer than 50 pixels have data."""
@@ -240,9 +265,10 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
     best plane in (u, v) (a depth bias maps a plane's affine disparity to another affine disparity, so
     it leaves nothing); its lag covariance less the temporal share (:func:`static_lag_cov`: the
     deviations' lag covariance / (F - 1)), so that a temporal noise unlike the base's does not read as
-    static. The pattern adds sigma_px^2 rho(h) to it; the base simulation's is subtracted. Captures are
-    pooled with weights n / (base temporal-mean variance + current estimate)^2, then sigma_px^2 and the
-    length are fitted (:func:`fit_gaussian_cov`). The pattern's realisation is
+    static. The pattern adds sigma_px^2 rho(h) to it; the base simulation's is subtracted. sigma_px^2 and
+    the length are the typical capture's (:func:`typical_capture_fit`: each capture fitted on its own, the
+    median over captures), so that captures whose static error is far larger than the rest's (grazing
+    angles on a physical D435) do not set the pattern of all. The pattern's realisation is
     not recovered (its ``seed`` is returned as 0).
 
     A capture of one frame: the "temporal mean" is its frame (the residual about its best plane fitted
@@ -263,11 +289,9 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
         if c.n_frames >= 2:
             sr = static_lag_cov(c, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
             sb = static_lag_cov(b, m, fb, dtrue, np.ones(z.shape), _STATIC_LAGS)
-            rb = _detrended_mean_residual(b, m, fb, dtrue)
-            if sr is None or sb is None or rb is None:
+            if sr is None or sb is None:
                 continue
             (cr, n), (cb, _) = sr, sb
-            v0 = float(np.nanvar(rb[m]))                  # the base's temporal-mean variance: the weights' scale
         else:
             rr = _single_frame_residual(c, m, fb)
             rb = _single_frame_residual(b, m, fb)
@@ -276,20 +300,13 @@ def _fit_static_pattern(real, base, model, rois=None, **_):
             single = True
             cr, n = lag_cov(rr[None], m, _STATIC_LAGS)
             cb, _ = lag_cov(rb[None], m, _STATIC_LAGS)
-            v0 = cb[0]
         if not (np.all(np.isfinite(cr)) and np.all(np.isfinite(cb))):
             continue
-        rows.append((cr - cb, n, v0))
+        rows.append((cr - cb, n))
     if not rows:
         raise ValueError("static_pattern: no capture with >= 50 interior pixels with data (in half its frames)")
-    lags = np.array(_STATIC_LAGS)
     use = slice(1, None) if single else slice(None)
-    A = 0.0
-    ell = 5.0
-    for _ in range(3):
-        num = sum(n * e / (v0 + A) ** 2 for e, n, v0 in rows)
-        den = sum(n / (v0 + A) ** 2 for e, n, v0 in rows)
-        A, ell = fit_gaussian_cov(lags[use], (num / den)[use], lmin=0.5, lmax=80.0)
+    A, ell = typical_capture_fit(rows, _STATIC_LAGS, use, lmin=0.5, lmax=80.0)
     return {"sigma_px": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
 
 
@@ -349,14 +366,17 @@ def _fit_static_noise(real, base, model, rois=None, base_effects=(), **_):
     temporal noise left in the temporal mean (:func:`static_lag_cov`), so that neither a different
     temporal level nor a temporal correlation reads as static with few frames. The field adds
     sigma_z_fraction^2 rho(h) to it; the base simulation's is subtracted (it holds what the effects
-    already selected make static). Pooled over captures by pair counts, fitted with
-    :func:`fit_gaussian_cov`. The field's realisation is not recovered (``seed`` 0).
+    already selected make static). The fraction and length are the typical capture's
+    (:func:`typical_capture_fit`: each capture fitted on its own, the median over captures): the
+    field's size follows sigma_d, and a static error that grows faster than sigma_d in some captures
+    (with the incidence angle, on a physical D435) would otherwise, pooled by pair counts, give every
+    capture the size of the few where it is largest. The field's realisation is not recovered (``seed`` 0).
 
     A capture of one frame cannot tell the static part from the temporal one: its residual about the
     target's best plane, over sigma_d, is read as static, and lag 0 is left out of the fit (white
     noise adds there).
     """
-    num, den = np.zeros(len(_STATIC_NOISE_LAGS)), np.zeros(len(_STATIC_NOISE_LAGS))
+    rows = []
     single = False
     for c, b in zip(real, base):
         g = c.geometry
@@ -381,15 +401,11 @@ def _fit_static_noise(real, base, model, rois=None, base_effects=(), **_):
             cr, n = lag_cov((rr / sd)[None], m, _STATIC_NOISE_LAGS)
             cb, _ = lag_cov((rb / sd)[None], m, _STATIC_NOISE_LAGS)
             single = True
-        ok = np.isfinite(cr) & np.isfinite(cb)
-        num[ok] += n[ok] * (cr[ok] - cb[ok])
-        den[ok] += n[ok]
-    if not (den > 0).all():
+        rows.append((cr - cb, n))
+    use = slice(1, None) if single else slice(None)
+    if not any(np.all(np.isfinite(e[use])) and np.all(n[use] > 0) for e, n in rows):
         raise ValueError("static_noise: no capture with >= 100 interior pixels with data in every frame")
-    lags, exc = np.array(_STATIC_NOISE_LAGS), num / den
-    if single:
-        lags, exc = lags[1:], exc[1:]
-    A, ell = fit_gaussian_cov(lags, exc, lmin=0.5, lmax=80.0)
+    A, ell = typical_capture_fit(rows, _STATIC_NOISE_LAGS, use, lmin=0.5, lmax=80.0)
     return {"sigma_z_fraction": float(math.sqrt(max(A, 1e-10))), "length_px": float(ell), "seed": 0}
 
 
