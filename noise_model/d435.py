@@ -121,7 +121,8 @@ class SensorModel:
     frame_variance_ratio : float
         Variance of one frame's depth error about the truth over the modelled (per-pixel temporal)
         variance, >= 1: a stereo camera adds a static error pattern that a static capture's temporal
-        standard deviation cannot see, yet a moving camera sees it anew in every frame. 1 (default): the
+        standard deviation cannot see, yet a moving camera sees it anew in every frame, and an offset
+        every pixel of a frame shares, which the axial fit removes with the frame's plane motion. 1 (default): the
         modelled sigma is the whole per-frame error.
     error_correlation_px : float
         Gaussian correlation length l [px] of that per-frame error across the image,
