@@ -31,6 +31,7 @@ import time
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from ..checks import check_depth, check_intrinsics, check_pose_cov, check_positive_scalar, check_transform
 from ..covariance import point_covariances, to_map_frame
@@ -40,7 +41,7 @@ from ..geometry import (
     SURFACE_HALF_ROWS, WINDOW_RADIUS_BLOCKS, default_block_px, deproject, depth_edges, depth_to_metres, despeckle,
     incidence_angle_stats, mixed_windows, plane_depths, surface_depths,
 )
-from ..numba_config import resolve_threads, threads
+from ..numba_config import JIT, resolve_threads, threads
 from .compiled import EDGES, PLANES, POINTS, ROW_MEDIANS, SURFACE_MEDIANS, sorting_network
 from .planes import moments_stage
 from .points import count_outside, points_stage
@@ -220,6 +221,20 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
             ("surface_medians", points_stage, points(SURFACE_MEDIANS)), ("points", points_stage, points(POINTS))]
 
 
+@njit(**JIT)
+def _frame_kernels(moments_args, surfaces_args, points_args):
+    """The three parallel regions of one frame (:func:`_stage_calls`, not one by one), launched from compiled
+    code: (N, the number of points outside the bounds of :class:`MapPoints`).
+
+    Launched from Python, each region costs a return to the interpreter and the unboxing of its ~40
+    arguments before the next starts; meanwhile OpenMP's worker threads spin for a short while and then
+    sleep (:mod:`noise_model.numba_config`), and waking them costs more than the gap itself. From here the
+    regions follow each other at once, so the workers are still spinning when the next one starts."""
+    N = moments_stage(*moments_args)
+    surfaces_stage(*surfaces_args)
+    return N, points_stage(*points_args)
+
+
 def _run_stages(calls, clock=None) -> tuple[int, int]:
     """Run the stages of :func:`_stage_calls`; with ``clock`` (a dict), its entries are the seconds each took.
     Returns the number of points and the number of them outside the bounds of :class:`MapPoints`."""
@@ -328,7 +343,8 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     d, scale, K, T, P, zmin, zmax, b, model, n, ws = _prepare_frame(
         depth, K, T_map_cam, pose_cov, depth_scale, model, min_depth_m, max_depth_m, block_px, nthreads, workspace)
     with threads(n):
-        N, n_out = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws))
+        calls = _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws)
+        N, n_out = _frame_kernels(*(args for _, _, args in calls))
     return _outputs(ws, N, n_out, workspace is None)   # without a workspace: fresh arrays, not views
 
 
