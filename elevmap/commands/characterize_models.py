@@ -245,7 +245,9 @@ def frame_error_report(cs, rows, skipped) -> dict:
             "skipped": skipped,
             "method": "per capture, the disparity error's temporal lag covariance (frame-wide offset removed) "
                       "plus its static part's (the temporal mean about its best plane, less the temporal "
-                      "share); ratio = total / temporal variance at lag 0, Gaussian correlation length over "
+                      "share) plus the frame-wide offset's variance (covariance over frames of the mean error "
+                      "of the target's left and right thirds), which a map sees as each frame's error; "
+                      "ratio = total / temporal variance at lag 0, Gaussian correlation length over "
                       "lags 1-11 px where the lag-1 correlation is >= 0.1 (else 0); medians over captures"}
 
 
