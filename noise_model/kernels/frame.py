@@ -226,10 +226,11 @@ def _frame_kernels(moments_args, surfaces_args, points_args):
     """The three parallel regions of one frame (:func:`_stage_calls`, not one by one), launched from compiled
     code: (N, the number of points outside the bounds of :class:`MapPoints`).
 
-    Launched from Python, each region costs a return to the interpreter and the unboxing of its ~40
-    arguments before the next starts; meanwhile OpenMP's worker threads spin for a short while and then
-    sleep (:mod:`noise_model.numba_config`), and waking them costs more than the gap itself. From here the
-    regions follow each other at once, so the workers are still spinning when the next one starts."""
+    Launched from Python, each region waits for a return to the interpreter and the unboxing of its ~40
+    arguments before it starts, while OpenMP's worker threads spin only briefly before they sleep
+    (:mod:`noise_model.numba_config`) and a sleeping worker must be woken. From here the regions follow
+    each other at once. The thread count is numba's setting at the call (:func:`threads`), as for the
+    stages launched one by one; the result is the same, bit for bit (the tests compare the two)."""
     N = moments_stage(*moments_args)
     surfaces_stage(*surfaces_args)
     return N, points_stage(*points_args)

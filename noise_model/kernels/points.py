@@ -22,10 +22,9 @@ __all__: list[str] = []
 
 @njit(parallel=True, **JIT)
 def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose, pose_form, params, family,
-                 noise_sigmas, b,
-                 bin_at_plane, jump_rel, thr_sig, rows_half, surface_net, rowmed, gain_px, eg_px, eg2_px, alpha_px,
-                 beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z, coord_max, var_min, var_max, pts,
-                 hvar, hcov, pix, outside):
+                 noise_sigmas, b, bin_at_plane, jump_rel, thr_sig, rows_half, surface_net, rowmed, gain_px, eg_px,
+                 eg2_px, alpha_px, beta_px, gamma_px, mixed_px, offsets, flags, speckle_z, surface_z, coord_max,
+                 var_min, var_max, pts, hvar, hcov, pix, outside):
     """Stages 3c and 4 per block row, in one parallel region: those of ``parts`` (SURFACE_MEDIANS, POINTS
     of :mod:`noise_model.kernels.compiled`). Stage 3c, the surface medians of the block row's pixels:
     :func:`noise_model.kernels.surfaces.surface_medians_block_row` (jump_rel .. rowmed in, surface_z out).
