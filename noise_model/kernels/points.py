@@ -48,12 +48,13 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
     P : ndarray, shape (6, 6)
         Pose covariance (translation [m^2], rotation [rad^2]), used where ``use_pose``.
     pose_form : None or True
-        True: the pose term J P J^T with every entry of P. None: P is diagonal (a common odometry covariance),
-        or zero without a pose covariance, and its products with the zero entries are left out; the entries
-        left are summed in the same order, and a product with an exact zero adds an exact zero, so both forms
-        agree on a diagonal P. As ``family``, its type tells numba which: each compiles to a loop with only
-        its own pose term (a flag would make the vectorised loop compute both and select). The mapper's usual
-        inputs (a diagonal pose covariance or none) share one compiled kernel.
+        True: the pose term J P J^T with every entry of P. None: P is diagonal (a common odometry covariance)
+        or not used, and its products with the zero entries are left out; the entries left are summed in the
+        same order, and a product with an exact zero adds an exact zero, so both forms agree on a diagonal P.
+        As ``family``, its type tells numba which: each compiles to a loop with only its own pose term (a
+        flag would make the vectorised loop compute both and select). The mapper's usual inputs (a diagonal
+        pose covariance or none) share one compiled kernel, in which ``use_pose`` selects between the loop
+        with the diagonal term and the loop without.
     params : ndarray
         SensorModel.params_array.
     family : None or True
@@ -101,13 +102,11 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
     sR2 = s_right * s_right
     sLR2 = max(sL2, sR2)
     # pose term J P J^T as quadratic forms in q = R p_cam, J = [I, -[q]_x], whose rows are
-    # x = e0 + q2 e4 - q1 e5, y = e1 - q2 e3 + q0 e5, z = e2 + q1 e3 - q0 e4; without a pose covariance the
-    # diagonal form with P = 0, which adds exact zeros
-    p = 1.0 if use_pose else 0.0
-    Pe = (p * P[0, 0], p * P[0, 1], p * P[0, 3], p * P[0, 4], p * P[0, 5], p * P[1, 1], p * P[1, 3], p * P[1, 4],
-          p * P[1, 5], p * P[2, 2], p * P[2, 3], p * P[2, 4], p * P[3, 3], p * P[3, 4], p * P[3, 5], p * P[4, 4],
-          p * P[4, 5], p * P[5, 5])
-    P00, P01, P03, P04, P05, P11, P13, P14, P15, P22, P23, P24, P33, P34, P35, P44, P45, P55 = Pe
+    # x = e0 + q2 e4 - q1 e5, y = e1 - q2 e3 + q0 e5, z = e2 + q1 e3 - q0 e4
+    P00, P01, P03, P04, P05 = P[0, 0], P[0, 1], P[0, 3], P[0, 4], P[0, 5]
+    P11, P13, P14, P15 = P[1, 1], P[1, 3], P[1, 4], P[1, 5]
+    P22, P23, P24 = P[2, 2], P[2, 3], P[2, 4]
+    P33, P34, P35, P44, P45, P55 = P[3, 3], P[3, 4], P[3, 5], P[4, 4], P[4, 5], P[5, 5]
     full_pose = pose_form is not None
     nan = np.nan
     inf = np.inf
@@ -203,7 +202,7 @@ def points_stage(parts, depth, scale, zmin, zmax, up, vp, fx, fy, T, P, use_pose
                     cxy += (P01 - q2 * P03 + q0 * P05
                             + q2 * (P14 - q2 * P34 + q0 * P45)
                             - q1 * (P15 - q2 * P35 + q0 * P55))
-                else:                                # P diagonal (or zero): the terms left of the full form
+                elif use_pose:                       # P diagonal: the terms left of the full form
                     cxx += P00 + q2 * q2 * P44 + q1 * q1 * P55
                     cyy += P11 + q2 * q2 * P33 + q0 * q0 * P55
                     czz += P22 + q1 * q1 * P33 + q0 * q0 * P44
