@@ -175,15 +175,16 @@ class Workspace:
 
 
 def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_by_one=False):
-    """The kernels of one frame as (name, kernel, arguments), in order, on the buffers of ``ws``; the first
-    returns the number of points N.
+    """The calls of :func:`_frame_kernels` for one frame as (name, regions, (moments, surfaces and points
+    arguments)), in order, on the buffers of ``ws``.
 
     Three parallel regions: ``moments``; the planes, edges and row medians of each block row
     (:func:`noise_model.kernels.surfaces.surfaces_stage`); the surface medians and points of each block row
     (:func:`noise_model.kernels.points.points_stage`). Each boundary is a real dependency: a window's plane
     needs the moments of the block rows around it, a surface median the row medians of the rows around it.
-    ``one_by_one``: the two fused kernels once per stage of :data:`STAGES`, each running that stage alone
-    (the same code on the same data, so the same result, bit for bit), to time them.
+    Without ``one_by_one``: one call, "whole", running the three. ``one_by_one``: one call per stage of
+    :data:`STAGES`, each running one region with that stage alone (the same code on the same data, so the
+    same result, bit for bit), to time them.
     """
     H, W = d.shape
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -212,41 +213,60 @@ def _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws, one_
                 ws.offsets, ws.flags, ws.speckle_z, ws.surface_z, MAX_COORDINATE_M, MIN_HEIGHT_VARIANCE,
                 MAX_POINT_VARIANCE, ws.points_map, ws.height_var, ws.horizontal_cov, ws.pixel, ws.outside)
 
-    moments = ("moments", moments_stage, (d, scale, zmin, zmax, up, vp, b, M, ws.rowcount, ws.offsets))
+    moments = (d, scale, zmin, zmax, up, vp, b, M, ws.rowcount, ws.offsets)
     if not one_by_one:
-        return [moments, ("surfaces", surfaces_stage, surfaces(PLANES | EDGES | ROW_MEDIANS)),
-                ("points", points_stage, points(SURFACE_MEDIANS | POINTS))]
-    return [moments, ("planes", surfaces_stage, surfaces(PLANES)), ("edges", surfaces_stage, surfaces(EDGES)),
-            ("row_medians", surfaces_stage, surfaces(ROW_MEDIANS)),
-            ("surface_medians", points_stage, points(SURFACE_MEDIANS)), ("points", points_stage, points(POINTS))]
+        return [("whole", MOMENTS_REGION | SURFACES_REGION | POINTS_REGION,
+                 (moments, surfaces(PLANES | EDGES | ROW_MEDIANS), points(SURFACE_MEDIANS | POINTS)))]
+    return [("moments", MOMENTS_REGION, (moments, surfaces(0), points(0))),
+            ("planes", SURFACES_REGION, (moments, surfaces(PLANES), points(0))),
+            ("edges", SURFACES_REGION, (moments, surfaces(EDGES), points(0))),
+            ("row_medians", SURFACES_REGION, (moments, surfaces(ROW_MEDIANS), points(0))),
+            ("surface_medians", POINTS_REGION, (moments, surfaces(0), points(SURFACE_MEDIANS))),
+            ("points", POINTS_REGION, (moments, surfaces(0), points(POINTS)))]
+
+
+#: Bits of :func:`_frame_kernels`' ``regions``: the moments, the fused surfaces kernel, the fused points kernel.
+MOMENTS_REGION = 1
+SURFACES_REGION = 2
+POINTS_REGION = 4
 
 
 @njit(**JIT)
-def _frame_kernels(moments_args, surfaces_args, points_args):
-    """The three parallel regions of one frame (:func:`_stage_calls`, not one by one), launched from compiled
-    code: (N, the number of points outside the bounds of :class:`MapPoints`).
+def _frame_kernels(regions, moments_args, surfaces_args, points_args):
+    """The parallel regions of one frame that ``regions`` names (bits MOMENTS_REGION, SURFACES_REGION,
+    POINTS_REGION), in that order, launched from compiled code: (N if the moments ran, else 0; the number of
+    points outside the bounds of :class:`MapPoints` if the points ran, else 0).
 
     Launched from Python, each region waits for a return to the interpreter and the unboxing of its ~40
     arguments before it starts, while OpenMP's worker threads spin only briefly before they sleep
     (:mod:`noise_model.numba_config`) and a sleeping worker must be woken. From here the regions follow
-    each other at once. The thread count is numba's setting at the call (:func:`threads`), as for the
-    stages launched one by one; the result is the same, bit for bit (the tests compare the two)."""
-    N = moments_stage(*moments_args)
-    surfaces_stage(*surfaces_args)
-    return N, points_stage(*points_args)
+    each other at once. The stages timed one by one run through this same compiled function (one region
+    and one part at a time), so that they execute the same machine code as the whole call: compiled into a
+    caller, a kernel's arithmetic may be optimised again and differ in the last bit from the kernel
+    launched on its own. The thread count is numba's setting at the call (:func:`threads`)."""
+    N = 0
+    n_out = 0
+    if regions & MOMENTS_REGION:
+        N = moments_stage(*moments_args)
+    if regions & SURFACES_REGION:
+        surfaces_stage(*surfaces_args)
+    if regions & POINTS_REGION:
+        n_out = points_stage(*points_args)
+    return N, n_out
 
 
 def _run_stages(calls, clock=None) -> tuple[int, int]:
-    """Run the stages of :func:`_stage_calls`; with ``clock`` (a dict), its entries are the seconds each took.
-    Returns the number of points and the number of them outside the bounds of :class:`MapPoints`."""
+    """Run the calls of :func:`_stage_calls` through :func:`_frame_kernels`; with ``clock`` (a dict), its
+    entries are the seconds each took. Returns the number of points and the number of them outside the
+    bounds of :class:`MapPoints`."""
     N = n_out = 0
-    for name, kernel, args in calls:
+    for name, regions, args in calls:
         t0 = time.perf_counter()
-        out = kernel(*args)
+        n, o = _frame_kernels(regions, *args)
         if clock is not None:
             clock[name] = time.perf_counter() - t0
-        N = out if name == "moments" else N
-        n_out = out if name == "points" else n_out
+        N = n if regions & MOMENTS_REGION else N
+        n_out = o if name in ("whole", "points") else n_out
     return int(N), int(n_out)
 
 
@@ -344,8 +364,7 @@ def depth_to_map_points(depth, K, T_map_cam, pose_cov=None, *, depth_scale=None,
     d, scale, K, T, P, zmin, zmax, b, model, n, ws = _prepare_frame(
         depth, K, T_map_cam, pose_cov, depth_scale, model, min_depth_m, max_depth_m, block_px, nthreads, workspace)
     with threads(n):
-        calls = _stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws)
-        N, n_out = _frame_kernels(*(args for _, _, args in calls))
+        N, n_out = _run_stages(_stage_calls(d, scale, K, T, P, model, zmin, zmax, b, bin_at_plane, ws))
     return _outputs(ws, N, n_out, workspace is None)   # without a workspace: fresh arrays, not views
 
 
