@@ -685,6 +685,28 @@ def test_direct_measurements_read_known_effects():
     assert by["band_margin_px"]["agrees"] and not by["static_sigma_d_px"]["agrees"]
 
 
+def test_direct_final_model_ratios_by_angle():
+    # a static error that grows with the angle against a model of one size: 0.04 / 0.02 = 2 at 0 deg,
+    # 0.04 / 0.06 = 0.67 at 60 deg, the median over the four captures 1.33; the angle bins show which carry it
+    from noise_model.analysis.diagnosis.direct import check_fitted
+
+    def caps(static):
+        return {"pooled": {}, "captures": [{"id": f"c{i}", "angle_deg": a, "static_sigma_d_px": s,
+                                            "temporal_sigma_d_px": 0.05}
+                                           for i, (a, s) in enumerate(zip((0.0, 14.999999999999996, 60.0, 75.0),
+                                                                          static))]}
+
+    rows = check_fitted([], caps((0.02, 0.02, 0.06, 0.06)), caps((0.04,) * 4))
+    by = {r["quantity"].split(" ")[0]: r for r in rows}
+    st = by["static_sigma_d_px"]
+    assert st["ratio"] == pytest.approx(4 / 3) and not st["agrees"]
+    assert st["ratio_by_angle"] == [{"angle_deg": [0.0, 15.0], "ratio": pytest.approx(2.0), "captures": 1},
+                                    {"angle_deg": [15.0, 30.0], "ratio": pytest.approx(2.0), "captures": 1},
+                                    {"angle_deg": [60.0, 75.0], "ratio": pytest.approx(2 / 3), "captures": 1},
+                                    {"angle_deg": [75.0, 90.0], "ratio": pytest.approx(2 / 3), "captures": 1}]
+    assert by["temporal_sigma_d_px"]["agrees"]
+
+
 def test_direct_band_reads_the_dark_margin_on_boards_backgrounds():
     from noise_model.analysis.capture_data import CaptureData
     from noise_model.analysis.diagnosis.direct import check_fitted, direct_measurements

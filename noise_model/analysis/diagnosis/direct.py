@@ -132,6 +132,10 @@ def capture_measurements(c) -> dict:
     return row
 
 
+#: Width [deg] of the incidence-angle bins of the final model's ratios (the diagnosis's binning).
+_ANGLE_BIN_DEG = 15
+
+
 #: The captures' band darkness must span this much for the pooled dark margin (as the fit's
 #: noise_model.analysis.effect_fits.coverage._DARK_MIN_SPREAD).
 _DARK_MIN_SPREAD = 0.2
@@ -193,14 +197,18 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
         :func:`direct_measurements` of the real captures.
     model_direct : mapping, optional
         :func:`direct_measurements` of the final model's simulation of the same captures: the temporal
-        sigma_d is compared capture by capture (the median ratio), since several effects shape it.
+        and static sigma_d are compared capture by capture (the median ratio), since several effects
+        shape them; and by incidence angle (the medians within 15 deg bins), since an error whose size
+        follows the angle otherwise than the model's shows only there.
     tolerance : float
         Relative difference within which a parameter agrees.
 
     Returns
     -------
     list of dict
-        ``quantity``, ``effect``, ``fitted``, ``direct``, ``ratio`` (fitted / direct), ``agrees``.
+        ``quantity``, ``effect``, ``fitted``, ``direct``, ``ratio`` (fitted / direct), ``agrees``; the
+        final model's rows also ``ratio_p10_p90`` and ``ratio_by_angle`` (list of {``angle_deg``: [lo, hi],
+        ``ratio``, ``captures``}, bins of :data:`_ANGLE_BIN_DEG` with at least one capture).
     """
     p = direct["pooled"]
     rows = []
@@ -229,12 +237,20 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
     if model_direct is not None:
         sim = {r["id"]: r for r in model_direct["captures"]}
         for key in ("temporal_sigma_d_px", "static_sigma_d_px"):
-            ratios = [sim[r["id"]][key] / r[key] for r in direct["captures"] if r["id"] in sim and r[key] > 0]
-            ratios = np.array([x for x in ratios if math.isfinite(x)])
+            pairs = [(sim[r["id"]][key] / r[key], r["angle_deg"]) for r in direct["captures"]
+                     if r["id"] in sim and r[key] > 0]
+            pairs = [(x, a) for x, a in pairs if math.isfinite(x)]
+            ratios = np.array([x for x, _ in pairs])
             if ratios.size:
+                angles = np.array([a for _, a in pairs])
+                lo = np.minimum(np.floor(angles / _ANGLE_BIN_DEG + 1e-9), 89 // _ANGLE_BIN_DEG)
+                by_angle = [{"angle_deg": [float(b * _ANGLE_BIN_DEG), float((b + 1) * _ANGLE_BIN_DEG)],
+                             "ratio": float(np.median(ratios[lo == b])), "captures": int(np.sum(lo == b))}
+                            for b in np.unique(lo)]
                 q = float(np.median(ratios))
                 rows.append({"quantity": f"{key} (final model / real, median over captures)",
                              "effect": "+".join(e["name"] for e in effects) or "reference", "fitted": q,
                              "direct": 1.0, "ratio": q, "agrees": bool(abs(q - 1.0) <= tolerance),
-                             "ratio_p10_p90": [float(np.percentile(ratios, 10)), float(np.percentile(ratios, 90))]})
+                             "ratio_p10_p90": [float(np.percentile(ratios, 10)), float(np.percentile(ratios, 90))],
+                             "ratio_by_angle": by_angle})
     return rows
