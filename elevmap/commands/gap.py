@@ -316,11 +316,24 @@ def format_summary(report: dict, top: int = 8) -> str:
         dp = report["direct"]["real"]["pooled"]
         out.append("DIRECT measurements of the real captures: " + ", ".join(
             f"{k} {v:.4g}" for k, v in dp.items() if v is not None and math.isfinite(v)))
-        for row in report["direct"]["check"]:
-            out.append(f"  {row['quantity']:60s} {row['effect']:24s} fitted {row['fitted']:.4g}, direct "
-                       f"{row['direct']:.4g}: ratio {row['ratio']:.3f} ({'agrees' if row['agrees'] else 'DISAGREES'})")
+        out.extend(format_direct_check(report["direct"]["check"]))
     out.append(f"({report.get('simulated_captures', 0)} captures simulated in {report.get('seconds', 0):.1f} s)")
     return "\n".join(out)
+
+
+def format_direct_check(rows) -> list[str]:
+    """Lines of the direct check (:func:`noise_model.analysis.diagnosis.direct.check_fitted`'s rows): each
+    fitted parameter against its direct measurement, and the final model's ratios with their medians by
+    incidence angle (captures per bin in brackets)."""
+    out = []
+    for row in rows:
+        out.append(f"  {row['quantity']:60s} {row['effect']:24s} fitted {row['fitted']:.4g}, direct "
+                   f"{row['direct']:.4g}: ratio {row['ratio']:.3f} ({'agrees' if row['agrees'] else 'DISAGREES'})")
+        if row.get("ratio_by_angle"):
+            out.append("    by incidence angle: " + ", ".join(
+                f"{b['angle_deg'][0]:.0f}-{b['angle_deg'][1]:.0f} deg {b['ratio']:.2f} ({b['captures']})"
+                for b in row["ratio_by_angle"]))
+    return out
 
 
 def _expected_cost(case: dict) -> float:

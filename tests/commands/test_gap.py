@@ -705,6 +705,10 @@ def test_direct_final_model_ratios_by_angle():
                                     {"angle_deg": [60.0, 75.0], "ratio": pytest.approx(2 / 3), "captures": 1},
                                     {"angle_deg": [75.0, 90.0], "ratio": pytest.approx(2 / 3), "captures": 1}]
     assert by["temporal_sigma_d_px"]["agrees"]
+    from elevmap.commands import gap as EG
+
+    text = "\n".join(EG.format_direct_check(rows))
+    assert "by incidence angle: 0-15 deg 2.00 (1), 15-30 deg 2.00 (1), 60-75 deg 0.67 (1), 75-90 deg 0.67 (1)" in text
 
 
 def test_direct_band_reads_the_dark_margin_on_boards_backgrounds():
