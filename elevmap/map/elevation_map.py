@@ -228,9 +228,10 @@ class ElevationMap:
         clean = origin is not None and self.visibility_cleanup
         if impl == "numba":
             # with the clean-up to come, the fusion's pass keeps each cell's lowest ray end for it
-            touched, box = fusion._fuse_frame(self.data, self.geometry, p, var, hcov, stamp, self.fusion_params,
-                                              self._ws, n, visibility.ENDPOINT_MARGIN_SIGMAS if clean else None,
-                                              check, frame_error)
+            touched, box = fusion.fuse_frame_in_threads(self.data, self.geometry, p, var, hcov, stamp,
+                                                        self.fusion_params, self._ws, n,
+                                                        visibility.ENDPOINT_MARGIN_SIGMAS if clean else None,
+                                                        check, frame_error)
         else:
             touched, box = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp,
                                                        self.fusion_params, frame_error)

@@ -858,14 +858,16 @@ def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, pa
     """
     n = resolve_threads(nthreads)
     with threads(n):
-        return _fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params, workspace, n,
-                           low_margin, check, frame_error)
+        return fuse_frame_in_threads(data, geometry, points_map, height_var, horizontal_cov, stamp, params,
+                                     workspace, n, low_margin, check, frame_error)
 
 
-def _fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params, workspace, n, low_margin,
-                check, frame_error):
-    """:func:`fuse_frame` inside the caller's ``threads(n)`` (``n`` resolved): a map's update sets numba's
-    threads once for all its kernels."""
+def fuse_frame_in_threads(data, geometry, points_map, height_var, horizontal_cov, stamp, params, workspace, n,
+                          low_margin, check, frame_error):
+    """:func:`fuse_frame` for a caller that has already set numba's threads (``with threads(n)``, ``n`` the
+    resolved count, passed in for the merge kernel): :class:`elevmap.map.elevation_map.ElevationMap`'s update
+    sets them once for all its kernels, since every change of numba's thread setting costs a call. The
+    arguments are :func:`fuse_frame`'s, checked by the caller."""
     has_h = horizontal_cov is not None
     pa = params.array(geometry.resolution_m, frame_error)
     box = accumulate(data, geometry, points_map, height_var, horizontal_cov, pa, workspace, check=check,
