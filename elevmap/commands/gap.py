@@ -159,7 +159,8 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     if parents is not None:
         report["depth_bands"] = {"edges_m": list(edges), "parts": parents}
     if direct:
-        report["direct"] = direct_check(real, res.selected, model, seed, report.get("sim_frames") or 2)
+        report["direct"] = direct_check(real, res.selected, model, seed, report.get("sim_frames") or 2,
+                                        heldout_ids=report["split"]["heldout"])
     if rp is not None:
         log_gap_recording(rp, report, res, real, model, seed)
         report["rrd"] = str(rp)
@@ -168,9 +169,11 @@ def run_gap(real_dir, json_path=None, rrd_path=None, heldout="auto", effects=Non
     return report
 
 
-def direct_check(real, selected, model: SensorModel = D435, seed: int = 0, n_frames: int = 2) -> dict:
+def direct_check(real, selected, model: SensorModel = D435, seed: int = 0, n_frames: int = 2,
+                 heldout_ids=None) -> dict:
     """The direct measurements of the real captures and of the final model's simulation of them, and each
-    fitted parameter next to its measurement (:func:`noise_model.analysis.diagnosis.direct.check_fitted`).
+    fitted parameter next to its measurement (:func:`noise_model.analysis.diagnosis.direct.check_fitted`;
+    ``heldout_ids``: the final model's ratios also over the fit and the held-out captures apart).
 
     The simulation is the diagnosis's own (:class:`noise_model.analysis.diagnosis.CaptureSimulator`, the
     same seeds), one capture at a time.
@@ -188,7 +191,7 @@ def direct_check(real, selected, model: SensorModel = D435, seed: int = 0, n_fra
     model_measured = direct_measurements(simulated())
     effects = [{"name": n, "params": p} for n, p in selected]
     return {"real": measured, "final_model": model_measured,
-            "check": check_fitted(effects, measured, model_measured)}
+            "check": check_fitted(effects, measured, model_measured, heldout_ids=heldout_ids)}
 
 
 def _parse_edges(depth_bands) -> list[float]:
@@ -324,7 +327,7 @@ def format_summary(report: dict, top: int = 8) -> str:
 def format_direct_check(rows) -> list[str]:
     """Lines of the direct check (:func:`noise_model.analysis.diagnosis.direct.check_fitted`'s rows): each
     fitted parameter against its direct measurement, and the final model's ratios with their medians by
-    incidence angle (captures per bin in brackets)."""
+    incidence angle and over the fit and held-out captures apart (captures in brackets)."""
     out = []
     for row in rows:
         out.append(f"  {row['quantity']:60s} {row['effect']:24s} fitted {row['fitted']:.4g}, direct "
@@ -333,6 +336,10 @@ def format_direct_check(rows) -> list[str]:
             out.append("    by incidence angle: " + ", ".join(
                 f"{b['angle_deg'][0]:.0f}-{b['angle_deg'][1]:.0f} deg {b['ratio']:.2f} ({b['captures']})"
                 for b in row["ratio_by_angle"]))
+        if row.get("ratio_by_split"):
+            names = {"fit": "fit captures", "heldout": "held-out captures"}
+            out.append("    " + ", ".join(f"{names[k]} {v['ratio']:.2f} ({v['captures']})"
+                                          for k, v in row["ratio_by_split"].items()))
     return out
 
 

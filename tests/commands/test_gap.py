@@ -709,6 +709,13 @@ def test_direct_final_model_ratios_by_angle():
 
     text = "\n".join(EG.format_direct_check(rows))
     assert "by incidence angle: 0-15 deg 2.00 (1), 15-30 deg 2.00 (1), 60-75 deg 0.67 (1), 75-90 deg 0.67 (1)" in text
+    assert "ratio_by_split" not in st
+    # the held-out captures apart: c2, c3 (0.67 each) held out, c0, c1 (2.0 each) fitted
+    rows = check_fitted([], caps((0.02, 0.02, 0.06, 0.06)), caps((0.04,) * 4), heldout_ids=["c2", "c3"])
+    st = {r["quantity"].split(" ")[0]: r for r in rows}["static_sigma_d_px"]
+    assert st["ratio_by_split"] == {"fit": {"ratio": pytest.approx(2.0), "captures": 2},
+                                    "heldout": {"ratio": pytest.approx(2 / 3), "captures": 2}}
+    assert "fit captures 2.00 (2), held-out captures 0.67 (2)" in "\n".join(EG.format_direct_check(rows))
 
 
 def test_direct_band_reads_the_dark_margin_on_boards_backgrounds():

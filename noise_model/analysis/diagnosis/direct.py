@@ -186,7 +186,7 @@ def direct_measurements(captures) -> dict:
 
 
 def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapping | None = None,
-                 tolerance: float = TOLERANCE) -> list[dict]:
+                 tolerance: float = TOLERANCE, heldout_ids: Sequence[str] | None = None) -> list[dict]:
     """Each fitted parameter that has a direct meaning, next to its direct measurement.
 
     Parameters
@@ -202,13 +202,19 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
         follows the angle otherwise than the model's shows only there.
     tolerance : float
         Relative difference within which a parameter agrees.
+    heldout_ids : sequence of str, optional
+        The diagnosis's held-out captures: the final model's ratios are then also given over the fit and
+        the held-out captures apart, since a held-out recording may differ from the fitted one in what no
+        fit can see (its own static error, say).
 
     Returns
     -------
     list of dict
         ``quantity``, ``effect``, ``fitted``, ``direct``, ``ratio`` (fitted / direct), ``agrees``; the
-        final model's rows also ``ratio_p10_p90`` and ``ratio_by_angle`` (list of {``angle_deg``: [lo, hi],
-        ``ratio``, ``captures``}, bins of :data:`_ANGLE_BIN_DEG` with at least one capture).
+        final model's rows also ``ratio_p10_p90``, ``ratio_by_angle`` (list of {``angle_deg``: [lo, hi],
+        ``ratio``, ``captures``}, bins of :data:`_ANGLE_BIN_DEG` with at least one capture) and, with
+        ``heldout_ids``, ``ratio_by_split`` ({"fit"|"heldout": {``ratio``, ``captures``}}, the parts with
+        at least one capture).
     """
     p = direct["pooled"]
     rows = []
@@ -237,12 +243,12 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
     if model_direct is not None:
         sim = {r["id"]: r for r in model_direct["captures"]}
         for key in ("temporal_sigma_d_px", "static_sigma_d_px"):
-            pairs = [(sim[r["id"]][key] / r[key], r["angle_deg"]) for r in direct["captures"]
+            pairs = [(sim[r["id"]][key] / r[key], r["angle_deg"], r["id"]) for r in direct["captures"]
                      if r["id"] in sim and r[key] > 0]
-            pairs = [(x, a) for x, a in pairs if math.isfinite(x)]
-            ratios = np.array([x for x, _ in pairs])
+            pairs = [(x, a, i) for x, a, i in pairs if math.isfinite(x)]
+            ratios = np.array([x for x, _, _ in pairs])
             if ratios.size:
-                angles = np.array([a for _, a in pairs])
+                angles = np.array([a for _, a, _ in pairs])
                 lo = np.minimum(np.floor(angles / _ANGLE_BIN_DEG + 1e-9), 89 // _ANGLE_BIN_DEG)
                 by_angle = [{"angle_deg": [float(b * _ANGLE_BIN_DEG), float((b + 1) * _ANGLE_BIN_DEG)],
                              "ratio": float(np.median(ratios[lo == b])), "captures": int(np.sum(lo == b))}
@@ -253,4 +259,9 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
                              "direct": 1.0, "ratio": q, "agrees": bool(abs(q - 1.0) <= tolerance),
                              "ratio_p10_p90": [float(np.percentile(ratios, 10)), float(np.percentile(ratios, 90))],
                              "ratio_by_angle": by_angle})
+                if heldout_ids is not None:
+                    held = np.array([i in set(heldout_ids) for _, _, i in pairs])
+                    rows[-1]["ratio_by_split"] = {
+                        part: {"ratio": float(np.median(ratios[sel])), "captures": int(np.sum(sel))}
+                        for part, sel in (("fit", ~held), ("heldout", held)) if np.any(sel)}
     return rows
