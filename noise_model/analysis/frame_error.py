@@ -51,7 +51,7 @@ import numpy as np
 from .effect_fits.correlation import fit_gaussian_cov, lag_cov, static_lag_cov
 
 __all__ = ["FRAME_ERROR_LAGS", "MIN_LAG1_CORRELATION", "MIN_FRAMES", "MAX_RATIO", "capture_frame_error",
-           "frame_offset_variance", "pooled_frame_error"]
+           "frame_offset_covariance", "pooled_frame_error"]
 
 #: Lags [px] of the correlation: the span of a map cell's pixels (a 4 cm cell is 2-20 px across).
 FRAME_ERROR_LAGS = (0, 1, 2, 3, 4, 6, 8, 11)
@@ -74,15 +74,16 @@ def capture_frame_error(c) -> dict:
     -------
     dict
         ``id``, ``distance_m``, ``temporal_var_d_px2`` (T(0)), ``static_var_d_px2`` (S(0), >= 0),
-        ``offset_var_d_px2`` (O, >= 0; :func:`frame_offset_variance`), ``ratio`` ((C(0) + O) / T(0), >= 1), ``rho`` (rho(h) over :data:`FRAME_ERROR_LAGS`), ``length_px``
-        (0 when not correlated); ``reason`` (str) and NaN values when fewer than 100 interior pixels have
-        data in every frame, the capture has fewer than :data:`MIN_FRAMES` frames or the ratio exceeds
-        :data:`MAX_RATIO`.
+        ``offset_var_d_px2`` (O, >= 0; :func:`frame_offset_covariance`), ``ratio`` ((C(0) + O) / T(0), >= 1),
+        ``rho`` (rho(h) over :data:`FRAME_ERROR_LAGS`), ``length_px`` (0 when not correlated); ``reason``
+        (str) and NaN values when fewer than 100 interior pixels have data in every frame, the capture has
+        fewer than :data:`MIN_FRAMES` frames or the ratio exceeds :data:`MAX_RATIO`.
     """
     g = c.geometry
     nan = float("nan")
     row = {"id": c.id, "distance_m": float(g.distance_m), "temporal_var_d_px2": nan, "static_var_d_px2": nan,
-           "offset_var_d_px2": nan, "ratio": nan, "rho": [nan] * len(FRAME_ERROR_LAGS), "length_px": nan, "reason": None}
+           "offset_var_d_px2": nan, "ratio": nan, "rho": [nan] * len(FRAME_ERROR_LAGS), "length_px": nan,
+           "reason": None}
     F = c.n_frames
     m, z = c.interior()
     fb = g.fb_px_m
@@ -119,7 +120,7 @@ def capture_frame_error(c) -> dict:
                          "the target is not the plane the capture names")
         return row
     rho = C / C[0]
-    offset = frame_offset_variance(dev + dev_mean[:, None], np.nonzero(ok)[1])
+    offset = frame_offset_covariance(dev + dev_mean[:, None], np.nonzero(ok)[1])
     row.update(temporal_var_d_px2=float(T[0]), static_var_d_px2=float(S[0]), offset_var_d_px2=offset,
                ratio=float((C[0] + offset) / T[0]), rho=[float(r) for r in rho])
     if rho[1] < MIN_LAG1_CORRELATION:
@@ -130,8 +131,13 @@ def capture_frame_error(c) -> dict:
     return row
 
 
-def frame_offset_variance(dev_px, cols) -> float:
-    """Variance [px^2] of the error every pixel of a frame shares (the frame-wide offset).
+def frame_offset_covariance(dev_px, cols) -> float:
+    """Variance [px^2] of the error every pixel of a frame shares (the frame-wide offset), as a covariance.
+
+    Not :func:`noise_model.analysis.effect_fits.disparity.frame_offset_variance`: that one is the variance
+    over frames of a frame's weighted mean deviation, which also holds the mean's share of the pixels' own
+    noise, and the ``frame_offset`` fit subtracts a base simulation's to remove it. A per-frame error
+    measured on a capture alone has no base to subtract, so it needs an estimate free of that share.
 
     Parameters
     ----------
@@ -153,6 +159,8 @@ def frame_offset_variance(dev_px, cols) -> float:
     if dev_px.ndim != 2 or cols.shape != (dev_px.shape[1],) or dev_px.shape[0] < 2:
         raise ValueError(f"dev_px must have shape (frames >= 2, pixels) and cols one column per pixel, got "
                          f"{dev_px.shape} and {cols.shape}")
+    if not np.all(np.isfinite(dev_px)):
+        raise ValueError("dev_px must be finite (the pixels with data in every frame)")
     lo, hi = np.quantile(cols, [1.0 / 3.0, 2.0 / 3.0]) if cols.size else (0.0, 0.0)
     left, right = cols < lo, cols > hi
     if not (left.any() and right.any()):

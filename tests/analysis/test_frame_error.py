@@ -8,7 +8,7 @@ import pytest
 from scipy import ndimage
 
 from noise_model.analysis.capture_data import CaptureData, CaptureGeometry
-from noise_model.analysis.frame_error import capture_frame_error, frame_offset_variance, pooled_frame_error
+from noise_model.analysis.frame_error import capture_frame_error, frame_offset_covariance, pooled_frame_error
 
 CAMERA = {"model": "D435", "width": 424, "height": 240, "fx": 212.0, "fy": 212.0, "ppx": 211.5, "ppy": 119.5,
           "depth_scale": 0.001, "baseline_m": 0.05}
@@ -68,17 +68,19 @@ def test_a_frame_wide_offset_adds_its_variance_to_the_ratio_not_to_the_length(rn
     assert capture_frame_error(_capture(rng, 0.05, 0.0, 0.0))["offset_var_d_px2"] < 1e-5
 
 
-def test_frame_offset_variance_by_hand():
+def test_frame_offset_covariance_by_hand():
     """Two frames, six pixels in columns 0-5: the left third (columns 0, 1) has frame means -1, 1, the
     right third (4, 5) 1, -1 on one and 1, 3 on the other: covariances -2 (clipped to 0) and 2; the
     middle columns (2, 3) do not count."""
     cols = np.arange(6)
     dev = np.array([[-1, -1, 50, -50, 1, 1], [1, 1, -50, 50, -1, -1]], dtype=float)
-    assert frame_offset_variance(dev, cols) == 0.0
+    assert frame_offset_covariance(dev, cols) == 0.0
     dev2 = np.array([[-1, -1, 50, -50, 1, 1], [1, 1, -50, 50, 3, 3]], dtype=float)
-    assert frame_offset_variance(dev2, cols) == pytest.approx(2.0)
+    assert frame_offset_covariance(dev2, cols) == pytest.approx(2.0)
     with pytest.raises(ValueError, match="frames >= 2"):
-        frame_offset_variance(dev[:1], cols)
+        frame_offset_covariance(dev[:1], cols)
+    with pytest.raises(ValueError, match="finite"):
+        frame_offset_covariance(np.where(dev > 10, np.nan, dev), cols)
 
 
 def test_pooled_takes_the_medians_and_says_when_nothing_was_measured():

@@ -260,7 +260,8 @@ def check_fitted(effects: Sequence[Mapping], direct: Mapping, model_direct: Mapp
                              "ratio_p10_p90": [float(np.percentile(ratios, 10)), float(np.percentile(ratios, 90))],
                              "ratio_by_angle": by_angle})
                 if heldout_ids is not None:
-                    held = np.array([i in set(heldout_ids) for _, _, i in pairs])
+                    held_set = set(heldout_ids)
+                    held = np.array([i in held_set for _, _, i in pairs])
                     rows[-1]["ratio_by_split"] = {
                         part: {"ratio": float(np.median(ratios[sel])), "captures": int(np.sum(sel))}
                         for part, sel in (("fit", ~held), ("heldout", held)) if np.any(sel)}
