@@ -91,8 +91,8 @@ from ..map.fusion import FusionParams
 from ..mapper import Camera, Mapper
 from ..pipeline import MappingConfig
 from .compare_args import REALITIES, apply_settings, camera_settings, parse_mappers, parse_reality, parse_settings
-from .compare_scores import (EDGE_RINGS, FLOOR_MARGIN, _common_scores, _edge_known_fractions, _matched_scores, _score,
-                             _truth_grid, edge_profile, floor_profile, most_confident)
+from .compare_scores import (EDGE_RINGS, FLOOR_MARGIN, common_scores, edge_known_fractions, edge_profile,
+                             floor_profile, matched_scores, most_confident, score_map, truth_grid)
 
 __all__ = ["MAPPERS", "BASE_MAPPERS", "ALL_MAPPERS", "SCENES", "DEFAULT_CAP", "DISPARITY_SIGMA_PX",
            "COMPARE_MAX_VARIANCE", "REPORT_KEYS", "EDGE_RINGS", "edge_profile", "FLOOR_MARGIN", "floor_profile",
@@ -554,13 +554,13 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
             got = run.digest.hexdigest()
             if got != digest or not unchanged:
                 raise RuntimeError(f"mapper {run.spec.name!r} did not get the rendered frames unchanged")
-            score = _score(run.emap, truth, run.times)
+            score = score_map(run.emap, truth, run.times)
             score["frames_digest"] = got
             score["model"] = run.spec.description
             results[run.spec.name] = score
             maps[run.spec.name] = run.emap
-        band_cells, band_known = _edge_known_fractions(maps, truth)
-        tr = _truth_grid(next(iter(maps.values())), truth)
+        band_cells, band_known = edge_known_fractions(maps, truth)
+        tr = truth_grid(next(iter(maps.values())), truth)
         for name, frac in band_known.items():
             results[name]["edge_known_fraction"] = frac
             results[name]["edge_profile"] = edge_profile(maps[name].known_layer("elevation"),
@@ -568,8 +568,8 @@ def run_compare(scene: str = "stairs", n_frames: int | None = None, *, seed: int
             results[name]["variance_floor"] = floor_profile(maps[name].known_layer("elevation"),
                                                             maps[name].known_layer("variance"), tr,
                                                             maps[name].fusion_params.min_variance)
-        common = _common_scores(maps, truth)
-        matched = _matched_scores(maps, truth)
+        common = common_scores(maps, truth)
+        matched = matched_scores(maps, truth)
         report = {"scene": scene, "frames": len(frames), "seed": int(seed), "width": int(width),
                   "height": int(height), "reality": real["kind"], "gap_report": real["gap_report"],
                   "preset": preset if real["sensor"] == "stereo" else None,

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..fileio import json_ready
 from ..pipeline import map_error
-from .compare import _truth_grid
+from .compare_scores import truth_grid
 
 __all__ = ["format_table", "CompareLogger", "ERROR_COLOR_RANGE_M", "ZSCORE_COLOR_RANGE"]
 
@@ -137,7 +137,7 @@ class CompareLogger:
         viz.set_time(rec, "frame", sequence=report["frames"] - 1)
         first = next(iter(maps.values()))
         xs, ys = first.cell_centres()
-        tr = _truth_grid(first, truth)
+        tr = truth_grid(first, truth)
         lo, hi = viz.robust_range(tr)
         viz.log_height_mesh(rec, "maps/truth/elevation", xs, ys, tr, viz.colormap(tr, lo, hi))
         viz.log_trail(rec, "maps/truth/trail", self.trail)

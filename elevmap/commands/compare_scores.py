@@ -16,7 +16,8 @@ import numpy as np
 from ..map.elevation_map import ElevationMap
 from ..pipeline import edge_band, map_error
 
-__all__ = ["EDGE_RINGS", "FLOOR_MARGIN", "edge_profile", "floor_profile", "most_confident"]
+__all__ = ["EDGE_RINGS", "FLOOR_MARGIN", "truth_grid", "score_map", "edge_profile", "floor_profile",
+           "edge_known_fractions", "common_scores", "most_confident", "matched_scores"]
 
 
 def _cell_scores(h, v, truth, mask) -> dict:
@@ -32,13 +33,17 @@ def _cell_scores(h, v, truth, mask) -> dict:
             "mean_sigma_m": float(np.mean(np.sqrt(var)))}
 
 
-def _truth_grid(emap: ElevationMap, truth) -> np.ndarray:
+def truth_grid(emap: ElevationMap, truth) -> np.ndarray:
+    """The true height [m] at every cell centre of ``emap``'s window, shape (rows, cols) as its layers;
+    ``truth`` maps (N, 2) map-frame x, y [m] to N heights."""
     xs, ys = emap.cell_centres()
     X, Y = np.meshgrid(xs, ys, indexing="ij")
     return np.asarray(truth(np.column_stack([X.ravel(), Y.ravel()])), dtype=np.float64).reshape(X.shape)
 
 
-def _score(emap: ElevationMap, truth, times) -> dict:
+def score_map(emap: ElevationMap, truth, times) -> dict:
+    """A final map's scores against ``truth`` (:func:`elevmap.pipeline.map_error`'s, the mean sigma, the known
+    fraction) and the median and 95th percentile of ``times`` [ms per frame] (NaN when empty)."""
     err = map_error(emap, truth)
     var = emap.layer("variance")
     known = emap.is_known()
@@ -132,11 +137,11 @@ def floor_profile(height, variance, truth, min_variance: float) -> dict:
             "coverage_2sigma": float(np.mean(np.abs(e) <= 2.0 * s)) if n else math.nan}
 
 
-def _edge_known_fractions(maps: dict, truth) -> tuple[int, dict]:
+def edge_known_fractions(maps: dict, truth) -> tuple[int, dict]:
     """The step-edge band's cells that some mapper knows (the band the walk saw), and per mapper the
     fraction of them it knows."""
     first = next(iter(maps.values()))
-    band = edge_band(_truth_grid(first, truth))
+    band = edge_band(truth_grid(first, truth))
     seen = np.zeros(band.shape, dtype=bool)
     for m in maps.values():
         seen |= m.is_known()
@@ -145,7 +150,9 @@ def _edge_known_fractions(maps: dict, truth) -> tuple[int, dict]:
     return n, {name: (float((m.is_known() & seen).sum() / n) if n else math.nan) for name, m in maps.items()}
 
 
-def _common_scores(maps: dict, truth) -> dict:
+def common_scores(maps: dict, truth) -> dict:
+    """Each mapper's scores over the cells every mapper of ``maps`` (name -> ElevationMap) knows, and their
+    number (``cells``): the comparison free of which cells each map knows."""
     if not maps:
         return {"cells": 0, "mappers": {}}
     first = next(iter(maps.values()))
@@ -154,7 +161,7 @@ def _common_scores(maps: dict, truth) -> dict:
         a, b = m.cell_centres()
         if not (np.array_equal(a, xs) and np.array_equal(b, ys)):
             raise RuntimeError(f"map of {name!r} is not on the same cells as the others")
-    tr = _truth_grid(first, truth)
+    tr = truth_grid(first, truth)
     mask = np.ones(tr.shape, dtype=bool)
     for m in maps.values():
         mask &= m.is_known()
@@ -194,14 +201,14 @@ def most_confident(variance, known, n: int) -> np.ndarray:
     return out.reshape(known.shape)
 
 
-def _matched_scores(maps: dict, truth) -> dict:
+def matched_scores(maps: dict, truth) -> dict:
     """Scores at equal coverage: each mapper over its N most confident known cells (smallest variance),
     N the fewest known cells of any mapper. What a consumer gets who keeps the N cells its map trusts
     most; a model whose variances rank its cells by their error well scores better."""
     if not maps:
         return {"cells": 0, "mappers": {}}
     n = min(int(m.is_known().sum()) for m in maps.values())
-    tr = _truth_grid(next(iter(maps.values())), truth)
+    tr = truth_grid(next(iter(maps.values())), truth)
     out = {}
     for name, m in maps.items():
         v = m.layer("variance")
