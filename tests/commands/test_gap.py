@@ -136,8 +136,10 @@ def test_numba_sums_equal_the_numpy_reference():
     reg[20:40, 30:34] = REGION_EDGE_LEFT
     reg[20:40, 60:64] = REGION_EDGE_RIGHT
     cap = G.make_gap_capture("ref", zt, np.full((H, W), 0.3), reg, K_SMALL, 0.05, 1.0, 17.0)
-    for F in (1, 5):
+    for F, unit in ((1, None), (5, None), (5, 0.001)):
         d = zt[None] + rng.normal(0, 0.004, (F, H, W))
+        if unit is not None:                                     # depth units: few distinct depths, repeated
+            d = np.round(d / unit) * unit
         d[rng.random(d.shape) < 0.1] = np.nan
         d[:, :, :3] = np.nan
         d[0, 10, 10] = 1.0 + 0.5                                 # a tail value
@@ -145,6 +147,17 @@ def test_numba_sums_equal_the_numpy_reference():
         fast = G.capture_sums(cap, d, s)
         ref = G.capture_sums_reference(cap, d, s)
         np.testing.assert_allclose(fast, ref, rtol=1e-9, atol=1e-9)
+    import numba
+
+    n0 = numba.get_num_threads()
+    try:                                                         # the same sums whatever the thread count
+        by_threads = []
+        for nt in sorted({1, min(2, numba.config.NUMBA_NUM_THREADS)}):
+            numba.set_num_threads(nt)
+            by_threads.append(G.capture_sums(cap, d, s))
+    finally:
+        numba.set_num_threads(n0)
+    np.testing.assert_array_equal(by_threads[0], by_threads[-1])
 
 
 def test_frame_sampling_rows():

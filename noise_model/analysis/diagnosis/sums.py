@@ -277,40 +277,109 @@ def _frame_sums_reference(cap: GapCapture, depth_m: np.ndarray):
 #: Buckets of the numba kernel: each pixel belongs to one (cell, region) pair, 9 cells x (no region + 4).
 _NREG1 = len(REGION_ORDER) + 1
 _NBUCKET = 9 * _NREG1
+#: Row blocks of the kernel's pair matrices (fixed, so that the sums do not depend on the thread count).
+_N_ROW_BLOCKS = 16
+#: Slots of the kernel's per-frame table of lattice cosines by depth value (a power of 2).
+_COS_SLOTS_LOG2 = 14
+_COS_HASH_MUL = np.uint64(0x9E3779B97F4A7C15)          # Fibonacci hashing of the depth's bit pattern
+_COS_HASH_SHIFT = np.uint64(64 - _COS_SLOTS_LOG2)
+
+
+def _bucket_runs(bucket: np.ndarray, geom: np.ndarray, n_blocks: int = _N_ROW_BLOCKS):
+    """Runs of pixels with a surface and the same bucket along each image row, in raster order.
+
+    Parameters
+    ----------
+    bucket : ndarray, shape (H, W), int
+        Bucket of each pixel (>= 0).
+    geom : ndarray, shape (H, W), bool
+        Pixels with a surface (the others belong to no run).
+    n_blocks : int
+        Row blocks: rows [H b / n_blocks, H (b + 1) / n_blocks) form block b.
+
+    Returns
+    -------
+    run_y, run_x0, run_x1, run_k : ndarray, shape (R,), int64
+        Row, first column, one past the last column, bucket of each run.
+    block_runs : ndarray, shape (n_blocks + 1,), int64
+        The runs of block b are ``block_runs[b]:block_runs[b + 1]``.
+    """
+    H, W = bucket.shape
+    flat = np.where(geom, bucket, -1).ravel()
+    start = np.ones(flat.size, dtype=bool)
+    start[1:] = flat[1:] != flat[:-1]
+    start[::W] = True                                     # a run never crosses a row end
+    first = np.flatnonzero(start)
+    end = np.append(first[1:], flat.size)
+    keep = flat[first] >= 0
+    first, end = first[keep], end[keep]
+    run_y, run_x0 = first // W, first % W
+    row_of_block = (H * np.arange(n_blocks + 1)) // n_blocks
+    block_runs = np.searchsorted(run_y, row_of_block, side="left")
+    return (run_y.astype(np.int64), run_x0.astype(np.int64), (run_x0 + end - first).astype(np.int64),
+            flat[first].astype(np.int64), block_runs.astype(np.int64))
+
+
+@njit(**JIT)
+def _pair_sums(a, va, b, vb, n):  # pragma: no cover - compiled
+    """sum a_i b_i and sum (a_i^2 vb_i + b_i^2 va_i) over i < n (a, b zero where va, vb are 0)."""
+    sp = 0.0
+    sq = 0.0
+    for i in range(n):
+        sp += a[i] * b[i]
+        sq += a[i] * a[i] * vb[i] + b[i] * b[i] * va[i]
+    return sp, sq
 
 
 @njit(parallel=True, **JIT)
-def _frame_sums_kernel(z, zt, inv_sig, geom, cell, bucket, phase_k, edges, lags, core_sig, lin, D,
-                       N):  # pragma: no cover - compiled
+def _frame_sums_kernel(z, zbits, zt, inv_sig, run_y, run_x0, run_x1, run_k, block_runs, nreg1, phase_k, edges,
+                       lags, core_sig, lin, D, N):  # pragma: no cover - compiled
     """numba: per-frame sums lin (F, B, _N_LIN) and pair matrices D, N (B, F, F) per bucket (zeroed by
-    the caller); B buckets = (cell, region) pairs, so each pixel is accumulated once (the strata are sums
-    of buckets, formed by the caller). Columns _C_QSP, _C_DFSP are left 0 (they are not linear in the
-    buckets). See :func:`_frame_sums_reference`.
+    the caller); B buckets = (cell, region) pairs, bucket k in cell k // nreg1, so each pixel is
+    accumulated once (the strata are sums of buckets, formed by the caller). Columns _C_QSP, _C_DFSP
+    are left 0 (they are not linear in the buckets). See :func:`_frame_sums_reference`.
+
+    The pixels are visited as runs (:func:`_bucket_runs`: along a row, the same bucket): each run's
+    sums are formed in local variables and added to its bucket once, and the lag and pair sums are
+    loops over a run's contiguous pixels, which the compiler vectorises. ``zbits`` is ``z`` viewed as
+    uint64: a per-frame direct-mapped table keyed by the depth value holds the lattice cosine of the
+    depth values met before (depth in depth units takes few distinct values); a cached entry is used
+    only when its depth equals the pixel's exactly, so every cosine is the one computed for that depth.
 
     Frames are independent (prange over frames, each writes its own lin[f]); the pair matrices are
-    summed over image rows split into fixed blocks, one partial result per block, then reduced in
-    block order, so the result does not depend on the thread count.
+    summed over row blocks (``block_runs``), one partial result per block, then reduced in block
+    order, so the result does not depend on the thread count.
     """
     F, H, W = z.shape
     B = lin.shape[1]
     nlag = lags.shape[0]
+    nrun = run_y.shape[0]
     nb = edges.shape[0] + 1
     e0 = edges[0]
     e1 = edges[nb - 2]
     inv_step = (nb - 2) / (e1 - e0)
     two_pi = 2.0 * math.pi
+    nslot = 1 << _COS_SLOTS_LOG2
     for f in prange(F):
         u = np.zeros((H, W))
-        v = np.zeros((H, W), dtype=np.bool_)
+        vf = np.zeros((H, W))                            # 1.0 where u holds a core value
         csum = np.zeros(9)
         ccnt = np.zeros(9)
+        table = np.zeros((nslot, 2))                    # (depth, cosine); depth -1 = empty
+        table[:, 0] = -1.0
         lf = lin[f]
-        for y in range(H):
-            for x in range(W):
-                if not geom[y, x]:
-                    continue
-                k = bucket[y, x]
-                lf[k, 0] += 1.0
+        for i in range(nrun):
+            y = run_y[i]
+            x0 = run_x0[i]
+            x1 = run_x1[i]
+            k = run_k[i]
+            s_valid = 0.0
+            s_cos = 0.0
+            s_core = 0.0
+            s_r = 0.0
+            s_r2 = 0.0
+            s_u = 0.0
+            for x in range(x0, x1):
                 zz = z[f, y, x]
                 if not (zz > 0.0):                          # NaN fails zz > 0
                     continue
@@ -329,100 +398,123 @@ def _frame_sums_kernel(z, zt, inv_sig, geom, cell, bucket, phase_k, edges, lags,
                         b -= 1
                     while b < nb - 1 and uu >= edges[b]:
                         b += 1
-                lf[k, 1] += 1.0
-                t = phase_k / zz                                 # disparity in lattice steps
-                lf[k, 6] += math.cos(two_pi * (t - math.floor(t)))
+                s_valid += 1.0
+                slot = np.intp((zbits[f, y, x] * _COS_HASH_MUL) >> _COS_HASH_SHIFT)
+                if table[slot, 0] == zz:
+                    cs = table[slot, 1]
+                else:
+                    t = phase_k / zz                                 # disparity in lattice steps
+                    cs = math.cos(two_pi * (t - math.floor(t)))
+                    table[slot, 0] = zz
+                    table[slot, 1] = cs
+                s_cos += cs
                 lf[k, _C_HIST + b] += 1.0
                 if abs(uu) > core_sig:                       # a tail value: only fill, lattice, histogram
                     continue
-                c = cell[y, x]
-                v[y, x] = True
+                vf[y, x] = 1.0
                 u[y, x] = uu
-                csum[c] += uu
-                ccnt[c] += 1.0
-                lf[k, 7] += 1.0
-                lf[k, 2] += r
-                lf[k, 3] += r * r
+                s_u += uu
+                s_core += 1.0
+                s_r += r
+                s_r2 += r * r
+            lf[k, _C_NGEOM] += x1 - x0
+            lf[k, _C_NVALID] += s_valid
+            lf[k, _C_COS] += s_cos
+            lf[k, _C_NCORE] += s_core
+            lf[k, _C_SR] += s_r
+            lf[k, _C_SR2] += s_r2
+            c = k // nreg1
+            csum[c] += s_u
+            ccnt[c] += s_core
         for c in range(9):
             if ccnt[c] > 0:
                 csum[c] = csum[c] / ccnt[c]
-        for y in range(H):                                   # u minus its cell's mean, in place
-            for x in range(W):
-                if v[y, x]:
-                    u[y, x] -= csum[cell[y, x]]
-        for y in range(H):
-            for x in range(W):
-                if not v[y, x]:
-                    continue
-                k = bucket[y, x]
-                a = u[y, x]
-                for j in range(nlag):
-                    h = lags[j]
-                    if x + h < W and v[y, x + h]:
-                        bb = u[y, x + h]
-                        lf[k, _C_P + j] += a * bb
-                        lf[k, _C_Q + j] += 0.5 * (a * a + bb * bb)
-                    if y + h < H and v[y + h, x]:
-                        bb = u[y + h, x]
-                        lf[k, _C_P + nlag + j] += a * bb
-                        lf[k, _C_Q + nlag + j] += 0.5 * (a * a + bb * bb)
+        for i in range(nrun):                                # u minus its cell's mean, in place
+            y = run_y[i]
+            mean = csum[run_k[i] // nreg1]
+            for x in range(run_x0[i], run_x1[i]):
+                if vf[y, x] != 0.0:
+                    u[y, x] -= mean
+        for i in range(nrun):                                # lag products: the pair belongs to (y, x)'s bucket
+            y = run_y[i]
+            x0 = run_x0[i]
+            x1 = run_x1[i]
+            k = run_k[i]
+            ua = u[y, x0:x1]
+            va = vf[y, x0:x1]
+            for j in range(nlag):
+                h = lags[j]
+                xe = min(x1, W - h)
+                if xe > x0:                                  # along u: (y, x) with (y, x + h)
+                    sp, sq = _pair_sums(ua, va, u[y, x0 + h:xe + h], vf[y, x0 + h:xe + h], xe - x0)
+                    lf[k, _C_P + j] += sp
+                    lf[k, _C_Q + j] += 0.5 * sq
+                if y + h < H:                                # along v: (y, x) with (y + h, x)
+                    sp, sq = _pair_sums(ua, va, u[y + h, x0:x1], vf[y + h, x0:x1], x1 - x0)
+                    lf[k, _C_P + nlag + j] += sp
+                    lf[k, _C_Q + nlag + j] += 0.5 * sq
     if F < 2:
         return
-    nblk = 16
+    nblk = block_runs.shape[0] - 1
     Dp = np.zeros((nblk, B, F, F))
     Np = np.zeros((nblk, B, F, F))
-    # pixels with a core value in every frame (most of them) pair every frame with every other: they are
-    # counted per bucket (nfull) instead of adding 1 to each of their pairs, and their D loop needs no
-    # index (the same additions in the same order, so D is the same; counts are exact integers)
-    nfull = np.zeros((nblk, B))
     for bk in prange(nblk):
-        y0 = (H * bk) // nblk
-        y1 = (H * (bk + 1)) // nblk
-        rr = np.zeros(F)
-        idx = np.zeros(F, dtype=np.int64)
-        for y in range(y0, y1):
-            for x in range(W):
-                if not geom[y, x]:
-                    continue
-                n = 0
-                zt0 = zt[y, x]
-                isg = inv_sig[y, x]
-                for f in range(F):
-                    zz = z[f, y, x]
+        rr = np.zeros((F, W))                 # a run's core residuals per frame, 0 elsewhere
+        vv = np.zeros((F, W))                 # 1.0 where rr holds a core residual
+        cnt = np.zeros(W)
+        for i in range(block_runs[bk], block_runs[bk + 1]):
+            y = run_y[i]
+            x0 = run_x0[i]
+            n = run_x1[i] - x0
+            k = run_k[i]
+            for x in range(n):
+                cnt[x] = 0.0
+            for f in range(F):
+                for x in range(n):
+                    zz = z[f, y, x0 + x]
+                    ok = False
+                    rf = 0.0
                     if zz > 0.0:
-                        rf = zz - zt0
-                        if abs(rf * isg) <= core_sig:
-                            idx[n] = f
-                            rr[n] = rf
-                            n += 1
-                if n < 2:
-                    continue
-                k = bucket[y, x]
-                Dc = Dp[bk, k]
-                if n == F:
-                    nfull[bk, k] += 1.0
-                    for a in range(F):
-                        ra = rr[a]
-                        for b in range(a + 1, F):
-                            dd = ra - rr[b]
-                            Dc[a, b] += dd * dd
-                    continue
-                Nc = Np[bk, k]
-                for a in range(n):
-                    fa = idx[a]
-                    ra = rr[a]
-                    for b in range(a + 1, n):
-                        dd = ra - rr[b]
-                        Dc[fa, idx[b]] += dd * dd
-                        Nc[fa, idx[b]] += 1.0
+                        rf = zz - zt[y, x0 + x]
+                        ok = abs(rf * inv_sig[y, x0 + x]) <= core_sig
+                    rr[f, x] = rf if ok else 0.0
+                    vv[f, x] = 1.0 if ok else 0.0
+                    cnt[x] += 1.0 if ok else 0.0
+            nfull = 0
+            for x in range(n):
+                if cnt[x] == F:
+                    nfull += 1
+            Dc = Dp[bk, k]
+            Nc = Np[bk, k]
+            if nfull == n:                    # every pixel of the run pairs every frame with every other
+                for a in range(F):
+                    for b in range(a + 1, F):
+                        s = 0.0
+                        for x in range(n):
+                            dd = rr[a, x] - rr[b, x]
+                            s += dd * dd
+                        Dc[a, b] += s
+                        Nc[a, b] += n
+            else:                             # pairs of frames where both have a core value
+                for a in range(F):
+                    for b in range(a + 1, F):
+                        s = 0.0
+                        s_n = 0.0
+                        for x in range(n):
+                            w = vv[a, x] * vv[b, x]
+                            dd = rr[a, x] - rr[b, x]
+                            s += dd * dd * w
+                            s_n += w
+                        Dc[a, b] += s
+                        Nc[a, b] += s_n
     for bk in range(nblk):
         for k in range(B):
             for f in range(F):
                 for e in range(f + 1, F):
                     D[k, f, e] += Dp[bk, k, f, e]
                     D[k, e, f] += Dp[bk, k, f, e]
-                    N[k, f, e] += Np[bk, k, f, e] + nfull[bk, k]
-                    N[k, e, f] += Np[bk, k, f, e] + nfull[bk, k]
+                    N[k, f, e] += Np[bk, k, f, e]
+                    N[k, e, f] += Np[bk, k, f, e]
 
 
 def _bucket_to_strata(x: np.ndarray, axis: int) -> np.ndarray:
@@ -443,16 +535,16 @@ def _frame_sums_fast(cap: GapCapture, depth_m: np.ndarray):
     reg1 = np.zeros((H, W), dtype=np.int64)                 # 0: no region, 1 + i: REGION_ORDER[i]
     for i, g in enumerate(REGION_ORDER):
         reg1[cap.regions == g] = 1 + i
-    bucket = np.ascontiguousarray(cell * _NREG1 + reg1, dtype=np.int64)
+    run_y, run_x0, run_x1, run_k, block_runs = _bucket_runs(cell * _NREG1 + reg1, geom)
     zt = np.where(geom, cap.z_true_m, 0.0)
     inv_sig = np.where(geom, 1.0 / np.where(geom, cap.sigma_m, 1.0), 0.0)
     lin_b = np.zeros((F, _NBUCKET, _N_LIN))
     D_b = np.zeros((_NBUCKET, F, F))
     N_b = np.zeros((_NBUCKET, F, F))
     z = np.ascontiguousarray(depth_m, dtype=np.float64)
-    _frame_sums_kernel(z, zt, inv_sig, geom, np.ascontiguousarray(cell, dtype=np.int64), bucket,
-                       LATTICE_STEPS_PER_PX * cap.fb_px_m, HIST_EDGES,
-                       np.asarray(LAGS_PX, dtype=np.int64), CORE_SIGMAS, lin_b, D_b, N_b)
+    _frame_sums_kernel(z, z.view(np.uint64), zt, inv_sig, run_y, run_x0, run_x1, run_k, block_runs, _NREG1,
+                       LATTICE_STEPS_PER_PX * cap.fb_px_m, HIST_EDGES, np.asarray(LAGS_PX, dtype=np.int64),
+                       CORE_SIGMAS, lin_b, D_b, N_b)
     lin = _bucket_to_strata(lin_b, 1)
     n, s1 = lin[:, :, _C_NCORE], lin[:, :, _C_SR]
     with np.errstate(invalid="ignore", divide="ignore"):
