@@ -148,7 +148,10 @@ def noisy_frame(prepared: PreparedNoise, rng: np.random.Generator, context: dict
     if sigma is None:
         z = z_t.copy()
     else:
-        z = z_t + rng.normal(0.0, 1.0, z_t.shape) * sigma
+        # z_t + n sigma, formed in the draws' own array: standard_normal draws what normal(0, 1) does
+        z = rng.standard_normal(z_t.shape)
+        z *= sigma
+        z += z_t
     if effects:
         th_ro = th.view()
         th_ro.flags.writeable = False
@@ -166,7 +169,10 @@ def noisy_frame(prepared: PreparedNoise, rng: np.random.Generator, context: dict
                                  f"{out.dtype} {out.shape}")
             z = out.astype(np.float64, copy=False)
     with np.errstate(invalid="ignore"):
-        units = np.round(z / scale)
-        ok = np.isfinite(units) & (z > 0) & (units <= 65535)
-    return np.where(ok, units, 0.0).astype(np.uint16)
+        units = np.divide(z, scale)
+        np.round(units, out=units)
+        no_data = ~(units <= 65535)                 # beyond the uint16 range, or NaN
+        no_data |= ~(z > 0)
+        units[no_data] = 0.0
+    return units.astype(np.uint16)
 

@@ -52,3 +52,19 @@ def test_prepare_checks_what_add_noise_checks(bad):
         theta = theta[:, :-1]
     with pytest.raises(ValueError):
         prepare_noise(z, theta)
+
+
+def test_the_draws_are_one_standard_normal_image_per_frame():
+    z, theta = _render(3)
+    z[0, :4] = 70.0                                 # beyond the uint16 range of 1 mm units: no data
+    prepared = prepare_noise(z, theta)
+    a, b = np.random.default_rng(9), np.random.default_rng(9)
+    for _ in range(3):
+        got = noisy_frame(prepared, a)
+        with np.errstate(invalid="ignore"):
+            zn = z + b.normal(0.0, 1.0, z.shape) * prepared.sigma_z
+            units = np.round(zn / 0.001)
+            want = np.where(np.isfinite(units) & (zn > 0) & (units <= 65535), units, 0.0).astype(np.uint16)
+        np.testing.assert_array_equal(got, want)
+        assert np.all(got[np.isnan(z)] == 0) and np.any(got[0, :4] == 0)
+    assert a.random() == b.random()                 # the generator is left where the reference leaves it
