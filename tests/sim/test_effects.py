@@ -718,3 +718,13 @@ def test_fits_on_the_genuine_d435_frames():
     big = cams[("opf848_board", "opf848_left_wall")]
     assert big["score"] > 0.9 and abs(big["fb_rel"]) < 0.5 * big["alias_rel"]
     assert cams[("opf424_board",)]["score"] < 0.2
+
+
+@pytest.mark.parametrize("n_frames", [1, 4, 5])
+def test_the_fits_temporal_median_is_numpys(n_frames):
+    from noise_model.analysis.effect_fits._common import _temporal_median
+
+    rng = np.random.default_rng(n_frames)
+    x = np.round(rng.normal(1.0, 0.01, (n_frames, 7, 9)), 3)          # depth units: ties between frames
+    x[rng.random(x.shape) < 0.1] = np.nan
+    np.testing.assert_array_equal(_temporal_median(x), np.median(x, axis=0))

@@ -130,6 +130,18 @@ def _robust_temporal_var(x, scale=None, min_count: int = 3):
     return var, n2
 
 
+def _temporal_median(x):
+    """np.median(x, axis=0) of x (F, ...) float, the same values: the middle of each pixel's sorted
+    values (the mean of the two middle ones for even F), NaN where a value is NaN; by a sort along the
+    frame axis, which is faster than the median's partition along that strided axis."""
+    x = np.asarray(x)
+    F = x.shape[0]
+    s = np.sort(x, axis=0)                          # NaN sorts last
+    med = s[F // 2].copy() if F % 2 else (s[F // 2 - 1] + s[F // 2]) / 2.0
+    med[np.isnan(s[-1])] = np.nan
+    return med
+
+
 def _temporal_min_count(n_frames: int) -> int:
     """Values a pixel needs for its temporal variance: 3, or every frame of a 2-frame capture."""
     return 3 if n_frames >= 3 else 2

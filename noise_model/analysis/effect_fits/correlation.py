@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from ...d435 import axial_sigma_unchecked
-from ._common import _base_sigma_model, _interior, _nominal, _plane_residual, _roi
+from ._common import _base_sigma_model, _interior, _nominal, _plane_residual, _roi, _temporal_median
 from .spec import FitSpec
 
 
@@ -134,7 +134,7 @@ def _standardised_residuals(c, m, sig, nf):
     sigma from the pixel's temporal median left out (0, weight 0) and the mean taken without them;
     returns (x, w) float32 (nf, H, W)."""
     z = c.depth_m
-    med = np.median(z, axis=0)
+    med = _temporal_median(z)
     with np.errstate(invalid="ignore"):
         keep = (np.abs(z - med) <= 8.0 * sig) & m[None]
     n = keep.sum(axis=0)
