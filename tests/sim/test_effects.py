@@ -728,3 +728,15 @@ def test_the_fits_temporal_median_is_numpys(n_frames):
     x = np.round(rng.normal(1.0, 0.01, (n_frames, 7, 9)), 3)          # depth units: ties between frames
     x[rng.random(x.shape) < 0.1] = np.nan
     np.testing.assert_array_equal(_temporal_median(x), np.median(x, axis=0))
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 1000, 1001])
+def test_the_fits_median_is_numpys(n):
+    from noise_model.analysis.effect_fits._common import _median
+
+    rng = np.random.default_rng(n)
+    x = np.round(rng.normal(0.0, 1.0, n), 2)                           # ties
+    assert _median(x) == np.median(x)
+    assert _median(x.reshape(-1, 1)) == np.median(x)
+    x[n // 2] = np.nan
+    assert math.isnan(_median(x))

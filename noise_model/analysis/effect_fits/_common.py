@@ -116,7 +116,7 @@ def _robust_temporal_var(x, scale=None, min_count: int = 3):
     if rs.size == 0:
         return np.full(x.shape[1], np.nan), np.zeros(x.shape[1], dtype=int)
     sub = rs if rs.size <= 200_000 else rs[:: rs.size // 200_000 + 1]
-    s = 1.4826 * float(np.median(sub))
+    s = 1.4826 * _median(sub)
     if not s > 0:
         s = float(np.std(sub)) or 1.0
     with np.errstate(invalid="ignore"):
@@ -128,6 +128,27 @@ def _robust_temporal_var(x, scale=None, min_count: int = 3):
         var = np.where(keep, (x0 - m2) ** 2, 0.0).sum(axis=0) / np.maximum(n2 - 1, 1)
     var[n2 < max(int(min_count), 2)] = np.nan
     return var, n2
+
+
+def _median(a) -> float:
+    """float(np.median(a)) of a float64 array (all of it), the same value, by one partition at the middle.
+
+    For even n the median is the mean of the order statistics n/2 - 1 and n/2: ``np.partition(a, n // 2)``
+    places the latter and leaves every smaller value before it, whose maximum is the former (NumPy's
+    median partitions at both, which costs several single partitions). NaN when ``a`` holds a NaN or
+    nothing, as np.median; other dtypes go to np.median itself.
+    """
+    a = np.asarray(a)
+    if a.dtype != np.float64 or a.size == 0:
+        return float(np.median(a))
+    a = a.ravel()
+    if np.isnan(a).any():
+        return float("nan")
+    k = a.size // 2
+    p = np.partition(a, k)
+    if a.size % 2:
+        return float(p[k])
+    return float((p[:k].max() + p[k]) / 2.0)
 
 
 def _temporal_median(x):
@@ -167,10 +188,11 @@ def _plane_residual(d, m, scale=None):
     coef = np.linalg.lstsq(A, y, rcond=None)[0]
     for _ in range(2):
         r = (y - A @ coef) / sc
-        mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        med = _median(r)
+        mad = 1.4826 * _median(np.abs(r - med))
         if not mad > 0:
             break
-        keep = np.abs(r - np.median(r)) <= 6.0 * mad
+        keep = np.abs(r - med) <= 6.0 * mad
         if keep.sum() < 50 or keep.all():
             break
         coef = np.linalg.lstsq(A[keep], y[keep], rcond=None)[0]
@@ -191,7 +213,7 @@ def _robust_mean_square(r, scale=None):
     if not v.any():
         return float("nan"), v
     a = np.abs(r[v] / sc[v])
-    s = 1.4826 * float(np.median(a))
+    s = 1.4826 * _median(a)
     if not s > 0:
         s = float(np.std(a)) or 1.0
     keep = np.zeros(r.shape, dtype=bool)

@@ -14,7 +14,7 @@ import math
 import numpy as np
 
 from ...d435 import axial_sigma_unchecked
-from ._common import _base_sigma_model, _interior, _nominal, _plane_residual, _roi, _temporal_median
+from ._common import _base_sigma_model, _interior, _median, _nominal, _plane_residual, _roi, _temporal_median
 from .spec import FitSpec
 
 
@@ -168,7 +168,7 @@ def _spatial_standardised_residual(c, m, sig, fb):
     with np.errstate(divide="ignore", invalid="ignore"):
         x = (z - fb / pr[1]) / sig
         keep = m & np.isfinite(x)
-        med = float(np.median(x[keep])) if keep.any() else 0.0
+        med = _median(x[keep]) if keep.any() else 0.0
         keep &= np.abs(x - med) <= 8.0
     return (np.where(keep, x, 0.0).astype(np.float32)[None], keep.astype(np.float32)[None])
 
@@ -252,7 +252,7 @@ def _single_frame_residual(c, m, fb):
         return None
     r = pr[0]
     ok = np.isfinite(r)
-    s = 1.4826 * float(np.median(np.abs(r[ok])))
+    s = 1.4826 * _median(np.abs(r[ok]))
     if s > 0:
         r = np.where(np.abs(r) <= 8.0 * s, r, np.nan)
     return r
@@ -341,8 +341,8 @@ def static_lag_cov(c, m, fb, dtrue, scale, lags):
     sc = np.where(scale[ok] > 0, scale[ok], 1.0)
     x_mean = (y - A @ coef) / sc
     x_dev = (d[:, ok] - mean[ok]) / sc
-    s_dev = 1.4826 * float(np.median(np.abs(x_dev)))
-    s_mean = 1.4826 * float(np.median(np.abs(x_mean - np.median(x_mean))))
+    s_dev = 1.4826 * _median(np.abs(x_dev))
+    s_mean = 1.4826 * _median(np.abs(x_mean - _median(x_mean)))
     keep = np.all(np.abs(x_dev) <= 8.0 * max(s_dev, 1e-12), axis=0) & (np.abs(x_mean) <= 8.0 * max(s_mean, 1e-12))
     if keep.sum() < 100:
         return None

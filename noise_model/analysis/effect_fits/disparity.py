@@ -20,8 +20,8 @@ from ...d435 import D435, SensorModel
 from ...sim.effects.base import check_sensor_model
 from ..capture_data import check_captures
 from ._common import (
-    _MAX_SAMPLE_PX, _base_sims, _check_rois, _disp_sigma, _frame, _interior, _nominal, _pixels, _plane_residual,
-    _robust_mean_square, _robust_temporal_var, _roi, _sample_mask, _sigma_ref_px, _temporal_min_count,
+    _MAX_SAMPLE_PX, _base_sims, _check_rois, _disp_sigma, _frame, _interior, _median, _nominal, _pixels,
+    _plane_residual, _robust_mean_square, _robust_temporal_var, _roi, _sample_mask, _sigma_ref_px, _temporal_min_count,
 )
 from .spec import FitSpec, select_captures
 
@@ -416,7 +416,7 @@ def frame_offset_variance(c, m, weight) -> float:
     d, w = d[:, ok], weight[m][ok]
     dev = d - d.mean(axis=0)
     a = np.abs(dev) * np.sqrt(w)
-    s = 1.4826 * float(np.median(a))
+    s = 1.4826 * _median(a)
     keep = np.all(a <= 8.0 * max(s, 1e-12), axis=0)
     if keep.sum() < 100:
         return float("nan")

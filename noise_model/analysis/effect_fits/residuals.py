@@ -17,7 +17,7 @@ from scipy.special import ndtr
 from ...d435 import axial_sigma_unchecked
 from ...formulas import angle_gain
 from ._common import (
-    _MAX_SAMPLE_PX, _base_sims, _disp_sigma, _frame, _nominal, _pixels, _plane_residual, _robust_mean_square,
+    _MAX_SAMPLE_PX, _base_sims, _disp_sigma, _frame, _median, _nominal, _pixels, _plane_residual, _robust_mean_square,
     _robust_temporal_var, _roi, _sample_mask, _temporal_min_count,
 )
 from .spec import FitSpec
@@ -64,7 +64,7 @@ def _fit_outliers(real, base, model, rois=None, **_):
         rr, rb = rr - centre, rb - centre
         fin = (rr / sd)[np.isfinite(rr)]
         sub = fin if fin.size <= 300_000 else fin[:: fin.size // 300_000 + 1]
-        k = 1.4826 * float(np.median(np.abs(sub - np.median(sub))))
+        k = 1.4826 * _median(np.abs(sub - _median(sub)))
         fbs = np.abs(rb / sd)[okb]
         kb = float(np.sqrt(np.mean(fbs ** 2)))                          # base core (lattices too)
         kq = float(np.quantile(fbs, 0.9999))                            # base core's extent
