@@ -740,3 +740,15 @@ def test_the_fits_median_is_numpys(n):
     assert _median(x.reshape(-1, 1)) == np.median(x)
     x[n // 2] = np.nan
     assert math.isnan(_median(x))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_lag_sums_kernel_equals_its_numpy_reference(dtype):
+    from noise_model.analysis.effect_fits.correlation import _lag_sums, _lag_sums_reference
+
+    rng = np.random.default_rng(4)
+    for shape in ((3, 11, 13), (1, 6, 5)):
+        x = rng.normal(0.0, 1.0, shape).astype(dtype)
+        x[rng.random(shape) < 0.2] = 0.0                                 # pixels without a value
+        lags = (0, 1, 2, 4, 7, 12)                                        # 7, 12: beyond a side of the image
+        np.testing.assert_allclose(_lag_sums(x, lags), _lag_sums_reference(x, lags), rtol=1e-12, atol=1e-12)

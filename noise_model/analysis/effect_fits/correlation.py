@@ -12,18 +12,72 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from ...d435 import axial_sigma_unchecked
+from ...numba_config import JIT
 from ._common import _base_sigma_model, _interior, _median, _nominal, _plane_residual, _roi, _temporal_median
 from .spec import FitSpec
 
 
 # ---- lag covariances ------------------------------------------------------------------------------
+@njit(**JIT)
+def _row_dot(a, b, n):  # pragma: no cover - compiled
+    """sum a_i b_i over i < n, in float64."""
+    s = 0.0
+    for i in range(n):
+        s += np.float64(a[i]) * np.float64(b[i])
+    return s
+
+
+@njit(**JIT)
+def _lag_sums_kernel(x, lags, out):  # pragma: no cover - compiled
+    """numba: :func:`_lag_sums_reference` into ``out`` (zeroed by the caller), row by row: each row's
+    products with the rows h below and with itself shifted by h, for every lag while the rows are in cache."""
+    F, H, W = x.shape
+    for f in range(F):
+        for y in range(H):
+            row = x[f, y]
+            for j in range(lags.shape[0]):
+                h = lags[j]
+                if h == 0:
+                    out[j] += _row_dot(row, row, W)
+                    continue
+                s = 0.0
+                if h < W:
+                    s += _row_dot(row[:W - h], row[h:], W - h)
+                if y + h < H:
+                    s += _row_dot(row, x[f, y + h], W)
+                out[j] += s
+
+
+def _lag_sums_reference(x, lags) -> np.ndarray:
+    """Sum over frames and pixels of x_p x_{p+h} for pixel pairs h apart along rows and along columns
+    (x_p^2 once for h = 0), per lag h of ``lags``; x (F, H, W) float (float64 products)."""
+    out = []
+    for h in lags:
+        if h == 0:
+            out.append(float(np.einsum("ijk,ijk->", x, x, dtype=np.float64)))
+        else:
+            s = float(np.einsum("ijk,ijk->", x[:, :, h:], x[:, :, :-h], dtype=np.float64))
+            s += float(np.einsum("ijk,ijk->", x[:, h:, :], x[:, :-h, :], dtype=np.float64))
+            out.append(s)
+    return np.array(out)
+
+
+def _lag_sums(x, lags) -> np.ndarray:
+    """:func:`_lag_sums_reference` by the numba kernel: (len(lags),) float64, lags non-negative integers."""
+    lg = np.asarray(lags, dtype=np.int64)
+    out = np.zeros(lg.size)
+    _lag_sums_kernel(np.ascontiguousarray(x), lg, out)
+    return out
+
+
 def lag_cov(x, mask, lags):
     """Mean of x_p x_{p+h} over frames and over pixel pairs h apart (rows and columns) both in mask and
     finite in x (F, H, W); returns (cov (len(lags),), n_pairs).
 
-    The products are summed by ``einsum`` on shifted views (no product image is made), and when every
+    The products are summed row by row (:func:`_lag_sums`, no product image is made), and when every
     frame has the same valid pixels the pairs are counted once on one frame and multiplied by F.
     """
     valid = np.isfinite(x) & mask[None]
@@ -33,19 +87,11 @@ def lag_cov(x, mask, lags):
         vf, mult = valid[:1].astype(np.float64), float(F)
     else:
         vf, mult = valid.astype(np.float64), 1.0
-    cov, npairs = [], []
-    for h in lags:
-        if h == 0:
-            s = float(np.einsum("ijk,ijk->", xf, xf))
-            n = mult * float(np.einsum("ijk->", vf))
-        else:
-            s = float(np.einsum("ijk,ijk->", xf[:, :, h:], xf[:, :, :-h]))
-            s += float(np.einsum("ijk,ijk->", xf[:, h:, :], xf[:, :-h, :]))
-            n = float(np.einsum("ijk,ijk->", vf[:, :, h:], vf[:, :, :-h]))
-            n = mult * (n + float(np.einsum("ijk,ijk->", vf[:, h:, :], vf[:, :-h, :])))
-        cov.append(s / n if n > 0 else np.nan)
-        npairs.append(n)
-    return np.array(cov), np.array(npairs)
+    s = _lag_sums(xf, lags)
+    n = mult * _lag_sums(vf, lags)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = np.where(n > 0, s / np.where(n > 0, n, 1.0), np.nan)
+    return cov, n
 
 
 def fit_gaussian_cov(lags, excess, weights=None, lmin=0.3, lmax=60.0):
@@ -114,19 +160,11 @@ _CORR_FRAMES = 6
 
 def _lag_cov_masked(x, w, lags):
     """:func:`lag_cov` for x (F, H, W) that is 0 where the weights w (F, H, W) (0/1, float32) are 0."""
-    cov, npairs = [], []
-    for h in lags:
-        if h == 0:
-            s = float(np.einsum("ijk,ijk->", x, x, dtype=np.float64))
-            n = float(np.einsum("ijk->", w, dtype=np.float64))
-        else:
-            s = float(np.einsum("ijk,ijk->", x[:, :, h:], x[:, :, :-h], dtype=np.float64))
-            s += float(np.einsum("ijk,ijk->", x[:, h:, :], x[:, :-h, :], dtype=np.float64))
-            n = float(np.einsum("ijk,ijk->", w[:, :, h:], w[:, :, :-h], dtype=np.float64))
-            n += float(np.einsum("ijk,ijk->", w[:, h:, :], w[:, :-h, :], dtype=np.float64))
-        cov.append(s / n if n > 0 else np.nan)
-        npairs.append(n)
-    return np.array(cov), np.array(npairs)
+    s = _lag_sums(x, lags)
+    n = _lag_sums(w, lags)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cov = np.where(n > 0, s / np.where(n > 0, n, 1.0), np.nan)
+    return cov, n
 
 
 def _standardised_residuals(c, m, sig, nf):
