@@ -752,3 +752,19 @@ def test_the_lag_sums_kernel_equals_its_numpy_reference(dtype):
         x[rng.random(shape) < 0.2] = 0.0                                 # pixels without a value
         lags = (0, 1, 2, 4, 7, 12)                                        # 7, 12: beyond a side of the image
         np.testing.assert_allclose(_lag_sums(x, lags), _lag_sums_reference(x, lags), rtol=1e-12, atol=1e-12)
+
+
+def test_static_fields_are_shared_between_effect_objects_within_the_cache_size(monkeypatch):
+    from noise_model.sim.effects import correlation as EC
+
+    a, b = E.static_noise(0.8, 5.0, seed=3), E.static_pattern(0.03, 5.0, seed=3)
+    ga = a.field((20, 30), "cap1")
+    assert b.field((20, 30), "cap1") is ga                               # the same length, seed, capture
+    assert not ga.flags.writeable
+    assert abs(ga.mean()) < 1e-12 and ga.std() == pytest.approx(1.0)
+    assert not np.array_equal(a.field((20, 30), "cap2"), ga)            # another capture, another field
+    monkeypatch.setattr(EC, "FIELD_CACHE_BYTES", 3 * ga.nbytes)
+    monkeypatch.setattr(EC, "_FIELDS", type(EC._FIELDS)())
+    fields = [E.static_noise(0.8, 5.0, seed=s).field((20, 30), "cap1") for s in range(5)]
+    assert sum(v.nbytes for v in EC._FIELDS.values()) <= 3 * ga.nbytes
+    np.testing.assert_array_equal(fields[3], ga)                        # recomputed after eviction: the same

@@ -14,7 +14,9 @@ sections cited of ``docs/depth-effects.md``.
 
 from __future__ import annotations
 
+import threading
 import zlib
+from collections import OrderedDict
 
 import numpy as np
 
@@ -57,28 +59,39 @@ class _CorrelatedNoise(Effect):
         return z + sigma * g
 
 
+#: Bytes of unit fields kept for the static effects (:meth:`_StaticField.field`), shared by every effect object:
+#: a field depends only on its length, seed, capture and image size, and a diagnosis builds a new effect
+#: object for every model it simulates, with fields of the same lengths and seeds over the same captures.
+FIELD_CACHE_BYTES = 128 * 2 ** 20
+_FIELDS: OrderedDict = OrderedDict()             # key -> read-only field, least recently used first
+_FIELDS_LOCK = threading.Lock()
+
+
 class _StaticField(Effect):
     """A unit field per capture, drawn from its own generator (never the frame's ``rng``)."""
 
-    def __init__(self, params: dict):
-        super().__init__(params)
-        self._fields: dict = {}
-
     def field(self, shape, capture_id: str = "") -> np.ndarray:
-        """The unit field G (H, W) of a capture: zero mean, unit standard deviation over the image."""
+        """The unit field G (H, W) of a capture: zero mean, unit standard deviation over the image
+        (read only; kept in a cache of :data:`FIELD_CACHE_BYTES` shared by the effect objects)."""
         H, W = (int(v) for v in shape)
-        key = (H, W, str(capture_id))
-        if key not in self._fields:
-            crc = zlib.crc32(str(capture_id).encode("utf-8"))
-            g = gaussian_random_field((H, W), self.params["length_px"],
-                                      np.random.default_rng([self.params["seed"], crc, H, W]))
-            g -= g.mean()
-            g /= g.std()
-            g.flags.writeable = False
-            if len(self._fields) >= 64:
-                self._fields.pop(next(iter(self._fields)))
-            self._fields[key] = g
-        return self._fields[key]
+        key = (float(self.params["length_px"]), int(self.params["seed"]), H, W, str(capture_id))
+        with _FIELDS_LOCK:
+            g = _FIELDS.get(key)
+            if g is not None:
+                _FIELDS.move_to_end(key)
+                return g
+        crc = zlib.crc32(str(capture_id).encode("utf-8"))
+        g = gaussian_random_field((H, W), self.params["length_px"],
+                                  np.random.default_rng([self.params["seed"], crc, H, W]))
+        g -= g.mean()
+        g /= g.std()
+        g.flags.writeable = False
+        with _FIELDS_LOCK:
+            _FIELDS[key] = g
+            total = sum(v.nbytes for v in _FIELDS.values())
+            while total > FIELD_CACHE_BYTES and len(_FIELDS) > 1:
+                total -= _FIELDS.popitem(last=False)[1].nbytes
+        return g
 
 
 class _StaticPattern(_StaticField):
