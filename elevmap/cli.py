@@ -315,8 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="timed frames of the NumPy references (default: 10)")
     p.add_argument("--threads", type=int, default=None, help="numba threads (default: all)")
     p.add_argument("--only", default=None, metavar="GROUPS",
-                   help="comma-separated subset of: noise, mapper, update, move_to, height_scan, first_frame, render, "
-                        "stereo, ros, run")
+                   help="comma-separated subset of: noise, mapper, physical (the mapper on the physical D435's "
+                        "frame), update, move_to, height_scan, first_frame, render, stereo, ros, run")
     p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

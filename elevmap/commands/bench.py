@@ -65,7 +65,8 @@ def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
     return 1e3 * float(np.median(times))
 
 
-GROUPS = ("noise", "mapper", "update", "move_to", "height_scan", "first_frame", "render", "stereo", "ros", "run")
+GROUPS = ("noise", "mapper", "physical", "update", "move_to", "height_scan", "first_frame", "render", "stereo", "ros",
+          "run")
 MAPPER_SIZES = ((1280, 720), (848, 480), (424, 240))
 #: Sizes of the ``update`` and ``floor`` records (points per frame: every pixel of the image).
 UPDATE_SIZES = ((848, 480), (424, 240))
@@ -188,6 +189,62 @@ def _bench_mapper(frames, reference_frames, n, bar):
                     parts["margin_ms"] = round(_median_ms(lambda: drop_valid_margin(d, margin, nthreads=n), nf, 2), 4)
                 out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
                                    map_cells=mapper.map.n ** 2, resolution_m=0.04, **parts))
+    return out
+
+
+def physical_scene(width: int, height: int, seed: int = 0):
+    """A legged robot's view as the physical D435 makes it (the ``stereo`` records' scene: the floor and a 0.3 m
+    box from 0.45 m up, pitched 30 deg down; projector, infrared pair and matching, so that its noise, correlated
+    over a few pixels, emerges instead of being drawn per pixel).
+
+    Returns (depth uint16 [mm], K, T_map_cam, pose_cov), as :func:`floor_scene`."""
+    from noise_model.sim import Box
+    from noise_model.sim.stereo import StereoD435
+
+    scene = Scene([Box(centre=(1.5, 0.2, 0.15), size=(0.4, 0.4, 0.3))], ground_z=0.0)
+    T = camera_extrinsics((0.0, 0.0, 0.45), pitch_down_deg=30.0)
+    cam = StereoD435(width, height)
+    depth = cam.depth_frame(scene, T, np.random.default_rng(seed))
+    return depth, np.asarray(cam.K, dtype=np.float64), T, np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
+
+
+def _bench_physical(frames, reference_frames, n, bar, sizes=SIZES):
+    """The mapper (valid-region margin, noise model, fusion and spreads; ``mapper_physical_cleanup``: and the
+    visibility clean-up) on :func:`physical_scene`'s frame next to its NumPy reference. The ``mapper_physical``
+    numba records also carry the noise kernel's stages timed alone on that frame (``stages``) and the share of
+    valid pixels the noise model finds in windows of two surfaces (``mixed_share``).
+
+    This is the mapper's cost on depth whose noise the sensor model did not write: the ``mapper`` records' floor
+    carries the paper's noise, drawn pixel by pixel, under which almost no window is mixed."""
+    out = []
+    for width, height in sizes:
+        d, K, T, P = physical_scene(width, height)
+        cam = Camera("d435", K, width, height)
+        dm = drop_valid_margin(d, cam.valid_margin_px, nthreads=n)
+        valid = dm > 0
+        mixed = nm.mixed_windows(nm.deproject(np.where(valid, dm * 0.001, np.nan), K))
+        share = float(mixed[valid].mean()) if valid.any() else 0.0
+        ws = nm.Workspace(height, width)
+        stages = _stage_ms(dm, K, T, P, 0.001, ws, frames, n, bar)
+        for name, cleanup in (("mapper_physical", False), ("mapper_physical_cleanup", True)):
+            for impl, nf in (("numba", frames), ("numpy", reference_frames)):
+                mapper = Mapper(ElevationMap(8.0, 0.04, visibility_cleanup=cleanup, nthreads=n), [cam], nthreads=n)
+                k = [0]
+                split = {"noise_ms": [], "fusion_ms": []}
+
+                def frame():
+                    k[0] += 1
+                    stats = mapper.integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=0.033 * k[0], impl=impl)
+                    for key, values in split.items():
+                        values.append(stats[key])
+                    return stats
+
+                npts = frame()["points"]
+                ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
+                parts = {key: round(float(np.median(values[-nf:])), 4) for key, values in split.items()}
+                extra = dict(stages=stages, mixed_share=round(share, 4)) if impl == "numba" and not cleanup else {}
+                out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
+                                   map_cells=mapper.map.n ** 2, resolution_m=0.04, **parts, **extra))
     return out
 
 
@@ -422,8 +479,9 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
         fusion stage by stage, :func:`_bench_update`), ``floor_ratio`` (to the ``floor`` record of the same points)
         and ``cleanup_ms``; the ``mapper*`` records ``noise_ms`` and ``fusion_ms`` (a frame's split; the numba ones
         also ``margin_ms``, the valid-region margin of ``noise_ms`` timed alone);
-        ``first_frame_*`` records carry ``seconds``, ``stereo`` records ``target_ms``, ``render_ms`` and
-        ``noise_and_match_ms`` (points: its valid pixels).
+        ``mapper_physical*`` records the same on the physical D435's frame, the first numba ones with ``stages``
+        and ``mixed_share`` (:func:`_bench_physical`); ``first_frame_*`` records carry ``seconds``, ``stereo``
+        records ``target_ms``, ``render_ms`` and ``noise_and_match_ms`` (points: its valid pixels).
     """
     from tqdm import tqdm
 
@@ -435,6 +493,7 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
     map_ref = min(reference_frames, 3)
     total = (("noise" in groups) * len(SIZES) * (3 * frames + reference_frames)
              + ("mapper" in groups) * len(MAPPER_SIZES) * 2 * (frames + map_ref)
+             + ("physical" in groups) * len(SIZES) * (3 * frames + 2 * map_ref)
              + ("update" in groups) * len(UPDATE_SIZES) * (6 * frames + 2 * reference_frames)
              + ("move_to" in groups) * frames + ("height_scan" in groups) * 2 * frames
              + ("first_frame" in groups) * 2 + ("render" in groups) * (frames + 1) + ("run" in groups) * 2 * RUN_ROUNDS
@@ -446,6 +505,8 @@ def run_bench(frames: int = 200, reference_frames: int = 10, nthreads: int | Non
             results += _bench_noise(frames, reference_frames, n, bar)
         if "mapper" in groups:
             results += _bench_mapper(frames, map_ref, n, bar)
+        if "physical" in groups:
+            results += _bench_physical(frames, map_ref, n, bar)
         if "update" in groups:
             results += _bench_update(frames, reference_frames, n, bar)
         if "move_to" in groups:
@@ -489,11 +550,11 @@ def _threading_layer() -> str:
 def format_table(report: dict) -> str:
     """A plain-text table of a bench report, with the numba/NumPy speed-up per record."""
     rows = report["results"]
-    lines = [f"{'record':<18}{'size':>11}{'impl':>7}{'median ms':>11}{'Mpoints/s':>11}{'speed-up':>10}"]
+    lines = [f"{'record':<24}{'size':>11}{'impl':>7}{'median ms':>11}{'Mpoints/s':>11}{'speed-up':>10}"]
     for r in rows:
         size = f"{r['width']}x{r['height']}"
         if "seconds" in r:
-            lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{'':>11}{'':>11}   first frame {r['seconds']:.2f} s"
+            lines.append(f"{r['name']:<24}{size:>11}{r['impl']:>7}{'':>11}{'':>11}   first frame {r['seconds']:.2f} s"
                          f" (process {r['process_seconds']:.1f} s)")
             continue
         ref = next((x for x in rows if x["name"] == r["name"] and x["width"] == r["width"]
@@ -502,7 +563,7 @@ def format_table(report: dict) -> str:
         if "target_ms" in r:
             speed = f"<= {r['target_ms']:.0f}"
         pps = "" if r.get("points_per_s") is None else f"{r['points_per_s'] / 1e6:.2f}"
-        lines.append(f"{r['name']:<18}{size:>11}{r['impl']:>7}{r['median_ms']:>11.3f}{pps:>11}{speed:>10}")
+        lines.append(f"{r['name']:<24}{size:>11}{r['impl']:>7}{r['median_ms']:>11.3f}{pps:>11}{speed:>10}")
     for r in rows:
         if r["name"] == "noise" and r["impl"] == "numba" and "stages" in r:
             st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
@@ -514,6 +575,12 @@ def format_table(report: dict) -> str:
                              f"({r['mapper_frame_points']} points, "
                              f"the board {r['points']}): stages alone [ms]: {st} (sum "
                              f"{sum(r['mapper_frame_stages'].values()):.2f})")
+    for r in rows:
+        if r["name"] == "mapper_physical" and r["impl"] == "numba" and "stages" in r:
+            st = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
+            lines.append(f"mapper_physical {r['width']}x{r['height']}: the physical D435's frame "
+                         f"({r['points']} points, {100 * r['mixed_share']:.0f} % of them in windows of two surfaces); "
+                         f"noise kernel's stages alone [ms]: {st} (sum {sum(r['stages'].values()):.2f})")
     for r in rows:
         if r["name"].startswith("mapper") and r["impl"] == "numba" and "fusion_ms" in r:
             margin = f" (valid-region margin {r['margin_ms']:.2f} ms)" if "margin_ms" in r else ""

@@ -35,6 +35,25 @@ def test_bench_writes_one_record_per_kernel_size_and_implementation(tmp_path, ca
     assert [p.name for p in tmp_path.iterdir()] == ["bench.json"]
 
 
+def test_bench_times_the_mapper_on_the_physical_d435s_frame():
+    # the mapper on depth whose noise emerges from stereo matching, next to its NumPy reference, with the
+    # noise kernel's stages on that frame and how much of it takes the two-surface path (424x240 only: fast)
+    from elevmap.commands.bench import _bench_physical, format_table
+    from noise_model.kernels import STAGES
+
+    rows = _bench_physical(1, 1, 1, None, sizes=((424, 240),))
+    names = ("mapper_physical", "mapper_physical_cleanup")
+    assert {(r["name"], r["impl"]) for r in rows} == {(name, impl) for name in names for impl in ("numba", "numpy")}
+    for r in rows:
+        assert r["median_ms"] > 0 and r["points"] > 0 and r["noise_ms"] > 0 and r["fusion_ms"] > 0
+    first = next(r for r in rows if r["name"] == "mapper_physical" and r["impl"] == "numba")
+    assert set(first["stages"]) == set(STAGES) and 0.0 <= first["mixed_share"] <= 1.0
+    assert all(r["points"] == first["points"] for r in rows)            # the same frame for every record
+    text = format_table({"results": rows, "machine": {"cpu": "x", "cores": 2, "threads": 1, "threading_layer": "omp",
+                                                      "numba": "0", "numpy": "0"}})
+    assert "the physical D435's frame" in text and "windows of two surfaces" in text
+
+
 def test_bad_arguments_are_reported_not_raised(capsys):
     assert main(["bench", "--frames", "0"]) == 2
     assert "must be >= 1" in capsys.readouterr().err
