@@ -768,3 +768,19 @@ def test_static_fields_are_shared_between_effect_objects_within_the_cache_size(m
     fields = [E.static_noise(0.8, 5.0, seed=s).field((20, 30), "cap1") for s in range(5)]
     assert sum(v.nbytes for v in EC._FIELDS.values()) <= 3 * ga.nbytes
     np.testing.assert_array_equal(fields[3], ga)                        # recomputed after eviction: the same
+
+
+def test_axial_refit_gives_every_frame_what_a_fresh_effect_gives():
+    rng = np.random.default_rng(6)
+    zt = rng.uniform(0.5, 3.0, (9, 12))
+    th = rng.uniform(0.0, 1.2, zt.shape)
+    zt[0, :3] = np.nan
+    th[0, :3] = np.nan
+    params = dict(c0=0.0012, c1=0.0006, c2=0.003, c_theta=0.02)
+    kept = E.make_effect("axial_refit", **params)
+    for f, (zt_f, th_f) in enumerate([(zt, th), (zt, th), (zt * 1.01, th), (zt, th)]):
+        z = zt_f + 0.003 * rng.standard_normal(zt.shape)
+        ctx = {"K": np.eye(3), "index": f, "z_true": zt_f}
+        got = kept(z.copy(), th_f, rng, dict(ctx))
+        want = E.make_effect("axial_refit", **params)(z.copy(), th_f, rng, dict(ctx))
+        np.testing.assert_array_equal(got, want)

@@ -41,6 +41,7 @@ class _AxialRefit(Effect):
         self.model = model
         self.new_model = replace(model, family="paper", axial_coefficients=(params["c0"], params["c1"],
                                                                              params["c2"], params["c_theta"]))
+        self._sigma_memo = None               # (z_true, theta, sigma_z) at the pixels hit, of the last frame
 
     def _apply(self, z, theta, rng, context):
         zt = _z_true(context, z.shape, self.name)
@@ -51,7 +52,13 @@ class _AxialRefit(Effect):
         with np.errstate(invalid="ignore"):
             hit = _valid(zt) & np.isfinite(theta) & np.isfinite(z_ref)
         s_ref = model_sigma(self.model, zt, theta, hit, context, self.name)
-        s_new = axial_sigma_unchecked(zt[hit], theta[hit], self.new_model)
+        zh, th_h = zt[hit], theta[hit]
+        memo = self._sigma_memo               # the last frame's: a static render gives the same sigma every frame
+        if memo is not None and np.array_equal(memo[0], zh) and np.array_equal(memo[1], th_h):
+            s_new = memo[2]
+        else:
+            s_new = axial_sigma_unchecked(zh, th_h, self.new_model)
+            self._sigma_memo = (zh, th_h, s_new)
         ratio = np.where(s_ref > 0, s_new / np.where(s_ref > 0, s_ref, 1.0), 1.0)
         out = z.copy()
         out[hit] = z[hit] + (ratio - 1.0) * (z_ref[hit] - zt[hit])
