@@ -784,3 +784,20 @@ def test_axial_refit_gives_every_frame_what_a_fresh_effect_gives():
         got = kept(z.copy(), th_f, rng, dict(ctx))
         want = E.make_effect("axial_refit", **params)(z.copy(), th_f, rng, dict(ctx))
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("with_context_sigma", [False, True])
+def test_the_sigma_image_is_the_pixels_sigma_filled_into_zeros(with_context_sigma):
+    from noise_model.sim.effects.base import model_sigma, model_sigma_image
+
+    rng = np.random.default_rng(8)
+    zt = rng.uniform(0.5, 3.0, (7, 10))
+    th = rng.uniform(0.0, 1.2, zt.shape)
+    zt[1, :4] = np.nan
+    hit = np.isfinite(zt)
+    ctx = {"K": np.diag([400.0, 400.0, 1.0])}
+    if with_context_sigma:
+        ctx["sigma_z"] = np.where(hit, rng.uniform(0.001, 0.01, zt.shape), 0.0)
+    want = np.zeros(zt.shape)
+    want[hit] = 0.7 * model_sigma(nm.D435, zt, th, hit, ctx, "test")
+    np.testing.assert_array_equal(model_sigma_image(nm.D435, zt, th, hit, ctx, "test", 0.7), want)

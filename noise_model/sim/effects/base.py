@@ -43,7 +43,8 @@ import numpy as np
 from ...checks import check_intrinsics, check_positive_scalar, check_scalar_range
 from ...d435 import D435, SensorModel, axial_sigma_unchecked
 
-__all__ = ["Effect", "gaussian_random_field", "check_sensor_model", "true_disparity", "frame_model", "model_sigma"]
+__all__ = ["Effect", "gaussian_random_field", "check_sensor_model", "true_disparity", "frame_model", "model_sigma",
+           "model_sigma_image"]
 
 
 class Effect:
@@ -144,6 +145,23 @@ def model_sigma(model: SensorModel, zt, theta, hit, context: dict, who: str):
     K = context.get("K")
     fx = None if K is None else float(np.asarray(K, dtype=np.float64)[0, 0])
     return axial_sigma_unchecked(zt[hit], theta[hit], frame_model(model, fx))
+
+
+def model_sigma_image(model: SensorModel, zt, theta, hit, context: dict, who: str, factor: float) -> np.ndarray:
+    """``factor`` times :func:`model_sigma` as an image (H, W) [m], 0 outside ``hit``.
+
+    The same values as filling zeros at ``hit`` with ``factor * model_sigma(...)``; with the context's
+    sigma_z it is one pass over the image instead of a gather and a scatter of the pixels hit.
+    """
+    sig = context.get("sigma_z")
+    if sig is not None:
+        s = np.asarray(sig, dtype=np.float64)
+        if s.shape != hit.shape:
+            raise ValueError(f"{who}: context['sigma_z'] must have shape {hit.shape}, got {s.shape}")
+        return np.where(hit, factor * s, 0.0)
+    out = np.zeros(hit.shape)
+    out[hit] = factor * model_sigma(model, zt, theta, hit, context, who)
+    return out
 
 
 def _fb(context: dict, who: str) -> float:

@@ -22,7 +22,9 @@ import numpy as np
 
 from ...checks import check_integer_range, check_scalar_range
 from ...d435 import D435, SensorModel
-from .base import Effect, _fb, _to_depth, _to_disparity, _z_true, check_sensor_model, gaussian_random_field, model_sigma
+from .base import (
+    Effect, _fb, _to_depth, _to_disparity, _z_true, check_sensor_model, gaussian_random_field, model_sigma_image,
+)
 from .spec import EffectSpec
 
 __all__ = ["correlated_noise", "static_pattern", "static_noise", "CORRELATED_NOISE_DEFAULTS"]
@@ -54,8 +56,7 @@ class _CorrelatedNoise(Effect):
                 raise ValueError(f"correlated_noise: context['z_true'] must have shape {z.shape}, got {zt.shape}")
             with np.errstate(invalid="ignore"):
                 hit = np.isfinite(zt) & np.isfinite(theta) & (zt > 0)
-            sigma = np.zeros(z.shape)
-            sigma[hit] = self.params["sigma_z_fraction"] * model_sigma(self.model, zt, theta, hit, context, self.name)
+            sigma = model_sigma_image(self.model, zt, theta, hit, context, self.name, self.params["sigma_z_fraction"])
         return z + sigma * g
 
 
@@ -115,8 +116,7 @@ class _StaticNoise(_StaticField):
         G = self.field(z.shape, context.get("capture_id") or "")
         with np.errstate(invalid="ignore"):
             hit = np.isfinite(zt) & np.isfinite(theta) & (zt > 0)
-        sigma = np.zeros(z.shape)
-        sigma[hit] = self.params["sigma_z_fraction"] * model_sigma(self.model, zt, theta, hit, context, self.name)
+        sigma = model_sigma_image(self.model, zt, theta, hit, context, self.name, self.params["sigma_z_fraction"])
         return z + sigma * G
 
 
