@@ -738,6 +738,8 @@ def test_the_fits_median_is_numpys(n):
     x = np.round(rng.normal(0.0, 1.0, n), 2)                           # ties
     assert _median(x) == np.median(x)
     assert _median(x.reshape(-1, 1)) == np.median(x)
+    xx = np.asfortranarray(np.stack([x, 2.0 * x]))                    # another memory order
+    assert _median(xx) == np.median(xx)
     x[n // 2] = np.nan
     assert math.isnan(_median(x))
 
