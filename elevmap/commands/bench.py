@@ -162,30 +162,37 @@ def _bench_noise(frames, reference_frames, n, bar):
     return out
 
 
+def _time_mapper(d, camera, T, P, cleanup, impl, nf, n, bar):
+    """A Mapper with one camera on an 8 m map at 0.04 m (``cleanup``: the visibility clean-up on) fed the same
+    frame ``d`` over and over: (median ms per frame, points per frame, {"noise_ms", "fusion_ms"}: the frame's
+    split into the noise model and the map (fusion, clean-up, neighbourhood spread), the mapper)."""
+    mapper = Mapper(ElevationMap(8.0, 0.04, visibility_cleanup=cleanup, nthreads=n), [camera], nthreads=n)
+    k = [0]
+    split = {"noise_ms": [], "fusion_ms": []}
+
+    def frame():
+        k[0] += 1
+        stats = mapper.integrate(camera.name, d, T_map_cam=T, pose_cov=P, stamp=0.033 * k[0], impl=impl)
+        for key, values in split.items():
+            values.append(stats[key])
+        return stats
+
+    npts = frame()["points"]
+    ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
+    parts = {key: round(float(np.median(values[-nf:])), 4) for key, values in split.items()}
+    return ms, npts, parts, mapper
+
+
 def _bench_mapper(frames, reference_frames, n, bar):
     out = []
     for width, height in MAPPER_SIZES:
         d, K, T, P = floor_scene(width, height)
+        camera = Camera("d435", K, width, height)
         for name, cleanup in (("mapper", False), ("mapper_cleanup", True)):
             for impl, nf in (("numba", frames), ("numpy", reference_frames)):
-                mapper = Mapper(ElevationMap(8.0, 0.04, visibility_cleanup=cleanup, nthreads=n),
-                                [Camera("d435", K, width, height)], nthreads=n)
-                k = [0]
-                split = {"noise_ms": [], "fusion_ms": []}
-
-                def frame():
-                    k[0] += 1
-                    stats = mapper.integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=0.033 * k[0], impl=impl)
-                    for key, values in split.items():
-                        values.append(stats[key])
-                    return stats
-
-                npts = frame()["points"]
-                ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
-                # the frame's split: the noise model, and the map (fusion, clean-up, neighbourhood spread)
-                parts = {key: round(float(np.median(values[-nf:])), 4) for key, values in split.items()}
+                ms, npts, parts, mapper = _time_mapper(d, camera, T, P, cleanup, impl, nf, n, bar)
                 if impl == "numba":        # the noise model's first pass alone: the valid-region margin
-                    margin = mapper.cameras["d435"].valid_margin_px
+                    margin = camera.valid_margin_px
                     parts["margin_ms"] = round(_median_ms(lambda: drop_valid_margin(d, margin, nthreads=n), nf, 2), 4)
                 out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
                                    map_cells=mapper.map.n ** 2, resolution_m=0.04, **parts))
@@ -228,20 +235,7 @@ def _bench_physical(frames, reference_frames, n, bar, sizes=SIZES):
         stages = _stage_ms(dm, K, T, P, 0.001, ws, frames, n, bar)
         for name, cleanup in (("mapper_physical", False), ("mapper_physical_cleanup", True)):
             for impl, nf in (("numba", frames), ("numpy", reference_frames)):
-                mapper = Mapper(ElevationMap(8.0, 0.04, visibility_cleanup=cleanup, nthreads=n), [cam], nthreads=n)
-                k = [0]
-                split = {"noise_ms": [], "fusion_ms": []}
-
-                def frame():
-                    k[0] += 1
-                    stats = mapper.integrate("d435", d, T_map_cam=T, pose_cov=P, stamp=0.033 * k[0], impl=impl)
-                    for key, values in split.items():
-                        values.append(stats[key])
-                    return stats
-
-                npts = frame()["points"]
-                ms = _median_ms(frame, nf, 2 if impl == "numba" else 0, bar)
-                parts = {key: round(float(np.median(values[-nf:])), 4) for key, values in split.items()}
+                ms, npts, parts, mapper = _time_mapper(d, cam, T, P, cleanup, impl, nf, n, bar)
                 extra = dict(stages=stages, mixed_share=round(share, 4)) if impl == "numba" and not cleanup else {}
                 out.append(_record(name, width, height, impl, ms, npts, nf, n if impl == "numba" else 1,
                                    map_cells=mapper.map.n ** 2, resolution_m=0.04, **parts, **extra))
