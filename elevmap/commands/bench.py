@@ -35,6 +35,9 @@ from .bench_run import RUN_ROUNDS, bench_run, run_lines
 __all__ = ["bench_scene", "floor_scene", "update_scene", "run_bench", "format_table", "GROUPS", "STEREO_TARGET_MS"]
 
 SIZES = ((848, 480), (424, 240))
+#: The pose covariance every bench frame is mapped with: 1 cm of translation, 3 mrad of rotation, diagonal
+#: (translation [m^2], rotation [rad^2]), as an odometry's.
+POSE_COV = np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
 
 
 def bench_scene(width: int, height: int, seed: int = 0):
@@ -48,8 +51,7 @@ def bench_scene(width: int, height: int, seed: int = 0):
     d = np.round(z / 0.001).astype(np.uint16)
     d[rng.random(d.shape) < 0.02] = 0
     T = camera_extrinsics((0.3, 0.0, 0.45), pitch_down_deg=30.0)
-    P = np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
-    return d, 0.001, K, T, P
+    return d, 0.001, K, T, POSE_COV.copy()
 
 
 def _median_ms(fn, frames: int, warmup: int, progress=None) -> float:
@@ -91,7 +93,7 @@ def floor_scene(width: int, height: int, seed: int = 0):
                  0.0)
     d = np.clip(np.round(np.maximum(z, 0.0) / 0.001), 0, 65535).astype(np.uint16)
     d[rng.random(d.shape) < 0.02] = 0
-    return d, K, T, np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
+    return d, K, T, POSE_COV.copy()
 
 
 def update_scene(width: int, height: int):
@@ -199,20 +201,27 @@ def _bench_mapper(frames, reference_frames, n, bar):
     return out
 
 
-def physical_scene(width: int, height: int, seed: int = 0):
-    """A legged robot's view as the physical D435 makes it (the ``stereo`` records' scene: the floor and a 0.3 m
-    box from 0.45 m up, pitched 30 deg down; projector, infrared pair and matching, so that its noise, correlated
-    over a few pixels, emerges instead of being drawn per pixel).
-
-    Returns (depth uint16 [mm], K, T_map_cam, pose_cov), as :func:`floor_scene`."""
+def _box_view():
+    """The physical D435's bench scene: the floor and a 0.3 m box, seen from 0.45 m up, pitched 30 deg down
+    (a legged robot's view). Returns (scene, T_map_cam)."""
     from noise_model.sim import Box
-    from noise_model.sim.stereo import StereoD435
 
     scene = Scene([Box(centre=(1.5, 0.2, 0.15), size=(0.4, 0.4, 0.3))], ground_z=0.0)
-    T = camera_extrinsics((0.0, 0.0, 0.45), pitch_down_deg=30.0)
+    return scene, camera_extrinsics((0.0, 0.0, 0.45), pitch_down_deg=30.0)
+
+
+def physical_scene(width: int, height: int, seed: int = 0):
+    """A legged robot's view as the physical D435 makes it (:func:`_box_view`, the ``stereo`` records' scene;
+    projector, infrared pair and matching, so that its noise, correlated over a few pixels, emerges instead of
+    being drawn per pixel).
+
+    Returns (depth uint16 [mm], K, T_map_cam, pose_cov), as :func:`floor_scene`."""
+    from noise_model.sim.stereo import StereoD435
+
+    scene, T = _box_view()
     cam = StereoD435(width, height)
     depth = cam.depth_frame(scene, T, np.random.default_rng(seed))
-    return depth, np.asarray(cam.K, dtype=np.float64), T, np.diag([1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5])
+    return depth, np.asarray(cam.K, dtype=np.float64), T, POSE_COV.copy()
 
 
 def _bench_physical(frames, reference_frames, n, bar, sizes=SIZES):
@@ -349,13 +358,11 @@ def _bench_render(frames, n, bar):
 
 
 def _bench_stereo(frames, n, bar):
-    """The physical D435 per frame at 424x240 and 848x480: a camera 0.45 m up, pitched 30 deg down,
-    over the floor and a 0.3 m box (render at the pose, then sensor noise and matching)."""
-    from noise_model.sim import Box
+    """The physical D435 per frame at 424x240 and 848x480 on :func:`_box_view` (render at the pose, then sensor
+    noise and matching)."""
     from noise_model.sim.stereo import StereoD435
 
-    scene = Scene([Box(centre=(1.5, 0.2, 0.15), size=(0.4, 0.4, 0.3))], ground_z=0.0)
-    T = camera_extrinsics((0.0, 0.0, 0.45), pitch_down_deg=30.0)
+    scene, T = _box_view()
     out = []
     for (width, height), target in STEREO_TARGET_MS.items():
         cam = StereoD435(width, height, nthreads=n)
