@@ -15,7 +15,7 @@ import numpy as np
 
 from noise_model.numba_config import resolve_threads, threads
 
-from . import fusion, grid_map, neighbours, prediction, queries, storage, visibility
+from . import fusion, fusion_reference, grid_map, neighbours, prediction, queries, storage, visibility
 from .grid import GridGeometry
 from .layers import LAYERS, POINTS, UNKNOWN_VALUES
 from .settings import check_coordinates, check_map_memory
@@ -233,7 +233,7 @@ class ElevationMap:
                                                         visibility.ENDPOINT_MARGIN_SIGMAS if clean else None,
                                                         check, frame_error)
         else:
-            touched, box = fusion.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp,
+            touched, box = fusion_reference.fuse_frame_reference(self.data, self.geometry, p, var, hcov, stamp,
                                                        self.fusion_params, frame_error)
         cleared = 0
         if clean and box is not None:

@@ -79,16 +79,14 @@ The kernel checks each point's values in the same pass (:func:`elevmap.map.setti
 is its NumPy reference), as it loads them: the pass writes only the partial grids, so a frame with a bad
 point leaves the map as it was, and the check costs a few comparisons per point instead of several passes
 over the arrays.
-:func:`fuse_frame_reference` computes the same update with NumPy (bincount); the tests hold the two
-equal.
+:func:`elevmap.map.fusion_reference.fuse_frame_reference` computes the same update with NumPy (bincount);
+the tests hold the two equal. The settings, :class:`FusionParams`, live in :mod:`elevmap.map.fusion_params`
+(imported here too).
 """
 
 from __future__ import annotations
 
 import math
-import warnings
-from dataclasses import InitVar, dataclass
-from statistics import NormalDist
 
 import numba
 import numpy as np
@@ -97,16 +95,16 @@ from numba import njit, prange
 from noise_model.formulas import dersimonian_laird_tau2, reduced_chi2_quantile
 from noise_model.numba_config import JIT, resolve_threads, threads
 
-from .neighbours import ESTIMATORS, interleaved
-from .settings import MAX_COORDINATE_M, MAX_POINT_VARIANCE, MIN_HEIGHT_VARIANCE, check_bool, check_int, check_real
-from .settings import check_point_values
+from .fusion_params import REMOVED_PARAMS, FusionParams, check_frame_error
+from .neighbours import interleaved
+from .settings import MAX_COORDINATE_M, MAX_POINT_VARIANCE, MIN_HEIGHT_VARIANCE, check_point_values
 from .layers import (
-    ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, LAYERS, MAX_HEIGHT, MIN_HEIGHT, NEIGHBOUR_SPREAD, INFO_SQ_SUM,
-    INFO_SUM, POINTS, SCATTER, SPREAD, TIME, UPPER_BOUND, VARIANCE, ZERO_WHEN_UNKNOWN, clear_sums,
+    ELEVATION, HVAR_X, HVAR_XY, HVAR_Y, MAX_HEIGHT, MIN_HEIGHT, NEIGHBOUR_SPREAD, INFO_SQ_SUM, INFO_SUM, POINTS,
+    SCATTER, SPREAD, TIME, UPPER_BOUND, VARIANCE, clear_sums,
 )
 
-__all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "fuse_frame_reference", "touched_box", "PARTIALS",
-           "REMOVED_PARAMS", "effective_samples", "check_frame_error"]
+__all__ = ["FusionParams", "FusionWorkspace", "fuse_frame", "touched_box", "PARTIALS", "REMOVED_PARAMS",
+           "effective_samples", "check_frame_error"]
 
 #: Number of partial grids (fixed, so that the summation order never depends on the thread count).
 PARTIALS = 8
@@ -116,138 +114,6 @@ PARTIALS = 8
 (PR_H, PR_VG, PR_T2, A_W0, A_WZ0, A_WZZ0, A_WW0, A_W, A_WZ, A_N, A_ZMIN, A_ZMAX, H_X, H_XY, H_Y, R_W, R_WZ, R_N,
  R_ZMIN, R_ZMAX, LOW_Z, LOW_K) = range(22)
 NACC = 22
-
-#: Settings that earlier versions had and that no longer exist, with why: a config file or a saved map
-#: naming one is read with a ``FutureWarning`` (which Python shows to the command line's users, unlike a
-#: ``DeprecationWarning``) and the setting is ignored; a value of the wrong type is still an error.
-REMOVED_PARAMS = {
-    "scatter_inflation": "dividing a frame's information in a cell by the reduced chi-square of its points changed "
-                         "no score on the paper's reference nor on the physical D435: the spreads cover what it "
-                         "guarded against (docs/fusion.md)",
-}
-
-
-@dataclass(frozen=True)
-class FusionParams:
-    """Parameters of the measurement update (module docstring; docs/fusion.md; the defaults' figures are
-    in docs/calibration.md).
-
-    Attributes
-    ----------
-    mahalanobis_threshold : float
-        Gate on |z - h| / sqrt(sigma^2 + P) [-].
-    min_variance, max_variance : float
-        Clamp of the cell variance [m^2]. Above ``max_variance`` a cell becomes unknown: 0.04 (sigma
-        20 cm) by default, a consumer's "no height rather than one that uncertain" (``elevmap compare``
-        runs every mapper with 1, elevation_mapping_cupy's, so that the ceiling does not decide which
-        cells each noise model is scored on; ANYbotics' code uses 9e-4). The floor, (1 mm)^2 (the
-        D435's depth unit), is what a D435 can say about the height at a 4 cm cell's centre however
-        many points it fuses: without one a cell of many precise near-range points claims a fraction of
-        a millimetre. The neighbourhood spread covers binning errors, so the floor need not (ANYbotics'
-        default is (3 mm)^2). A user whose real D435 adds calibration error the simulation lacks should
-        raise it (``elevmap gap`` fits a depth bias and a static pattern among its effects).
-    min_horizontal_variance : float or None
-        Floor of the horizontal variances [m^2]; (resolution / 2)^2 when None (as ANYbotics).
-    max_horizontal_variance : float
-        Ceiling of the horizontal variances [m^2].
-    change_min_points : int
-        Rejected points needed (and more than accepted) before a cell is taken to have changed.
-    max_points_per_frame : float or None
-        The information cap n_eff (None: off).
-    spread_alpha : float or None
-        Significance level of the spread test: a cell's points scatter about its height more than
-        their modelled noise allows (chi-square above its 1 - spread_alpha quantile) -> tau^2 > 0
-        (DerSimonian-Laird), added to the cell's variance. 0.5 (default): the plain DerSimonian-Laird
-        estimator, any excess counts; smaller: only a significant excess. None: no spread (tau^2 = 0).
-    spread_ratio : float
-        The spread counts only where a cell's points scatter about its height more than
-        ``spread_ratio`` times their modelled variance (reduced chi-square Q / (n - 1)): a second
-        surface in the cell, points bled over an edge. Below, the excess is the noise model
-        misjudging its own sigma (the estimated incidence angle's error, unmodelled effects): it
-        averages out in the cell's mean, and adding it as tau^2 makes such cells' sigma several times
-        too large. 20 by default, where the simulated walks' mean NLL has levelled off; 1: any
-        significant excess counts.
-    neighbour_radius : int
-        Half-width [cells] of the neighbourhood whose disagreement is added to a cell's variance
-        (``neighbour_spread``, see :mod:`elevmap.map.neighbours`); 0: off. 4 (a 9 x 9 window, 0.36 m at
-        4 cm) by default. The heights depend on it only through the weights of later points (the
-        module docstring).
-    neighbour_estimator : {"paule_mandel", "dersimonian_laird"}
-        The estimator of the neighbourhood spread (:mod:`elevmap.map.neighbours`): Paule-Mandel (default),
-        or DerSimonian-Laird, which its weights 1 / P make the precise cells' alone.
-    min_points : int
-        Points a cell must have fused (``points`` layer) before it is reported: below, the map keeps and
-        fuses it but :meth:`ElevationMap.is_known`, the queries, the exports, the fused map and the scores
-        treat it as unknown. A cell one or two pixels have seen holds a tail draw or a sliver of a
-        neighbouring level as often as not. 3 by default; 1 reports every fused cell.
-    scatter_inflation : bool, optional
-        Removed (:data:`REMOVED_PARAMS`): accepted for old config files and saved maps, with a
-        ``FutureWarning``, and ignored.
-    """
-
-    mahalanobis_threshold: float = 2.5
-    min_variance: float = 1e-6
-    max_variance: float = 0.04
-    min_horizontal_variance: float | None = None
-    max_horizontal_variance: float = 0.5
-    change_min_points: int = 3
-    max_points_per_frame: float | None = None
-    spread_alpha: float | None = 0.5
-    spread_ratio: float = 20.0
-    neighbour_radius: int = 4
-    neighbour_estimator: str = "paule_mandel"
-    min_points: int = 3
-    scatter_inflation: InitVar[bool | None] = None
-
-    def __post_init__(self, scatter_inflation=None):
-        if scatter_inflation is not None:
-            check_bool(scatter_inflation, "scatter_inflation")
-            warnings.warn("FusionParams: scatter_inflation was removed and is ignored "
-                          f"({REMOVED_PARAMS['scatter_inflation']})", FutureWarning, stacklevel=3)
-        for name in ("mahalanobis_threshold", "min_variance", "max_variance", "max_horizontal_variance"):
-            check_real(getattr(self, name), name, 0.0, lo_open=True)
-        if self.min_variance >= self.max_variance:
-            raise ValueError("min_variance must be below max_variance")
-        if self.min_horizontal_variance is not None:
-            check_real(self.min_horizontal_variance, "min_horizontal_variance", 0.0, lo_open=True)
-        check_int(self.change_min_points, "change_min_points", 1)
-        if self.max_points_per_frame is not None:
-            check_real(self.max_points_per_frame, "max_points_per_frame (None or a number)", 1.0)
-        if self.spread_alpha is not None:
-            check_real(self.spread_alpha, "spread_alpha (None or a number)", 1e-12, 0.5)
-        check_real(self.spread_ratio, "spread_ratio", 1.0, 1e6)
-        check_int(self.neighbour_radius, "neighbour_radius [cells]", 0, 10)
-        if self.neighbour_estimator not in ESTIMATORS:
-            raise ValueError(f"neighbour_estimator must be one of {ESTIMATORS}, got {self.neighbour_estimator!r}")
-        check_int(self.min_points, "min_points", 1, 10000)
-
-    def array(self, resolution_m: float, frame_error=None) -> np.ndarray:
-        """Packed for the kernels: thr, min_var, max_var, min_hvar, max_hvar, change_min, cap (0 = off),
-        spread z (normal quantile of 1 - spread_alpha; -1 = off), spread ratio, and the frame's error
-        correlation length l [px] (0 = none) and variance ratio r (1 = none) from ``frame_error`` = (l, r)
-        (module docstring; None: (0, 1))."""
-        min_h = (resolution_m / 2) ** 2 if self.min_horizontal_variance is None else self.min_horizontal_variance
-        ell, ratio = check_frame_error(frame_error)
-        return np.array([self.mahalanobis_threshold, self.min_variance, self.max_variance, min_h,
-                         self.max_horizontal_variance, float(self.change_min_points),
-                         0.0 if self.max_points_per_frame is None else float(self.max_points_per_frame),
-                         -1.0 if self.spread_alpha is None else NormalDist().inv_cdf(1.0 - self.spread_alpha),
-                         float(self.spread_ratio), ell, ratio])
-
-
-def check_frame_error(frame_error) -> tuple[float, float]:
-    """(l [px], r) of a frame's error from ``frame_error`` = (l, r) or None ((0, 1)): l in [0, 1000], r in
-    [1, 100], finite numbers; a ValueError naming what is wrong."""
-    if frame_error is None:
-        return 0.0, 1.0
-    try:
-        ell, ratio = frame_error
-    except (TypeError, ValueError):
-        raise ValueError(f"frame_error must be (correlation length [px], variance ratio), got {frame_error!r}") \
-            from None
-    return (check_real(ell, "frame_error correlation length", 0.0, 1000.0, unit=" px"),
-            check_real(ratio, "frame_error variance ratio", 1.0, 100.0))
-
 
 def effective_samples(n, ell):
     """Independent samples among n pixels of a square patch whose errors have the Gaussian correlation
@@ -802,16 +668,6 @@ def _merge_kernel(data, sx, sy, has_h, stamp, params, acc, acc_stamp, fid, pbox,
 # ---------------------------------------------------------------------------------------------
 # public entries
 # ---------------------------------------------------------------------------------------------
-def _cells(geom_n, gx0, gy0, res, x, y):
-    """Buffer cell index of each point and the mask of those inside the window (NumPy)."""
-    fi = np.floor(x / res) - gx0
-    fj = np.floor(y / res) - gy0
-    inside = (fi >= 0) & (fi < geom_n) & (fj >= 0) & (fj < geom_n)
-    bi = (fi[inside].astype(np.int64) + gx0) % geom_n
-    bj = (fj[inside].astype(np.int64) + gy0) % geom_n
-    return bi * geom_n + bj, inside
-
-
 def fuse_frame(data, geometry, points_map, height_var, horizontal_cov, stamp, params: FusionParams,
                workspace: FusionWorkspace, nthreads=None, low_margin=None, check=True,
                frame_error=None) -> tuple[int, tuple | None]:
@@ -916,130 +772,3 @@ def touched_box(geometry, points_map) -> tuple | None:
         return None
     fi, fj = fi[inside], fj[inside]
     return int(fi.min()), int(fi.max()), int(fj.min()), int(fj.max())
-
-
-def fuse_frame_reference(data, geometry, points_map, height_var, horizontal_cov, stamp,
-                         params: FusionParams, frame_error=None) -> tuple[int, tuple | None]:
-    """NumPy reference of :func:`fuse_frame`: the same checks (:func:`elevmap.map.settings.check_point_values`)
-    and update, vectorised with bincount."""
-    check_point_values(points_map, height_var, horizontal_cov)
-    g = geometry
-    n = g.n
-    p = params.array(g.resolution_m, frame_error)
-    thr, min_var, max_var, min_h, max_h, change_min, cap, spread_z, ratio, ell, fratio = p
-    x, y, z = points_map[:, 0], points_map[:, 1], points_map[:, 2]
-    c, inside = _cells(n, g.gx0, g.gy0, g.resolution_m, x, y)
-    z, var = z[inside], height_var[inside]
-    hc = None if horizontal_cov is None else horizontal_cov[inside]
-    flat = data.reshape(len(LAYERS), n * n)            # a view: writes go to data
-    tau2_old = np.where(flat[SPREAD] > 0, flat[SPREAD], 0.0)      # NaN (unknown) -> 0
-    nb_old = np.where(flat[NEIGHBOUR_SPREAD] > 0, flat[NEIGHBOUR_SPREAD], 0.0)
-    excess = np.maximum(nb_old - tau2_old, 0.0)      # the neighbourhood's part (see neighbour_excess)
-    h0, v0 = flat[ELEVATION, c], (flat[VARIANCE] - excess)[c]
-    rej = ~np.isnan(h0) & ((z - h0) ** 2 > thr * thr * (var + v0))
-    acc = ~rej
-    t2 = np.maximum(tau2_old, nb_old)[c]            # see _weight_tau2
-    w0 = 1.0 / var
-    w = np.where(t2 > 0, 1.0 / (var + t2), w0)
-    m = n * n
-
-    def bc(mask, weights=None):
-        return np.bincount(c[mask], weights=None if weights is None else weights[mask], minlength=m).astype(float)
-
-    def extreme(mask, fn, init):
-        out = np.full(m, init)
-        fn.at(out, c[mask], z[mask])
-        return out
-
-    W, WZ, N = bc(acc, w), bc(acc, w * z), bc(acc)
-    every = np.ones_like(acc)
-    W0, WZ0, WZZ0, WW0 = bc(every, w0), bc(every, w0 * z), bc(every, w0 * z * z), bc(every, w0 * w0)
-    Wr, WZr, Nr = bc(rej, w), bc(rej, w * z), bc(rej)
-    zmin, zmax = extreme(acc, np.minimum, np.inf), extreme(acc, np.maximum, -np.inf)
-    zminr, zmaxr = extreme(rej, np.minimum, np.inf), extreme(rej, np.maximum, -np.inf)
-    seen = (N + Nr) > 0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        if hc is not None:
-            Hx, Hxy, Hy = (bc(acc, w * hc[:, k]) / W for k in range(3))
-        if cap > 0 or ell > 0 or fratio != 1.0:
-            def scale(cnt):             # n_eff / (N r), n_eff = min(effective samples, cap): _information_scale
-                ne = effective_samples(cnt, ell)
-                if cap > 0:
-                    ne = np.minimum(ne, cap)
-                return np.where(cnt > 0, ne / (np.maximum(cnt, 1) * fratio), 1.0)
-
-            s, sr = scale(N), scale(Nr)
-            W, WZ, Wr, WZr = W * s, WZ * s, Wr * sr, WZr * sr
-        h, v = flat[ELEVATION].copy(), flat[VARIANCE] - tau2_old - excess
-        known = ~np.isnan(h)
-        npo = flat[POINTS]
-        v = np.where(known & (tau2_old > 0) & (npo > 0),
-                     np.maximum(v, tau2_old * np.maximum(N + Nr, 1.0) / np.where(npo > 0, npo, 1.0)), v)
-        change = seen & known & (Nr >= change_min) & (Nr > N)
-        mr = WZr / Wr
-        inflation = np.where(change, (mr - h) ** 2, 0.0)     # added after the fusion (see _merge_cell)
-        reset = change & (v + inflation > max_var)
-        fuse = seen & ~reset & (N > 0)
-        fuse_known = fuse & known
-        fuse_new = fuse & ~known
-        # P_post = 1 / (1/P + W);  h_post = P_post (h/P + WZ)  (an unknown cell: 1 / W, WZ / W)
-        v_post = np.where(fuse_known, 1.0 / (1.0 / v + W), np.where(fuse_new, 1.0 / W, v))
-        h_post = np.where(fuse_known, (h / v + WZ) * v_post, np.where(fuse_new, WZ / W, h))
-        h_post = np.where(reset, mr, h_post)
-        v_post = np.where(reset, 1.0 / Wr, v_post)
-        v_post = np.where(change & ~reset, v_post + inflation, v_post)
-        # spread statistics (see _spread_update)
-        mb = WZ0 / W0
-        qb = np.maximum(WZZ0 - WZ0 * mb, 0.0)
-        # continued where the cell was known and fused; fresh (this frame's points only) where it is new
-        # or was reset
-        s1o = np.where(fuse_known, flat[INFO_SUM], 0.0)
-        s2o = np.where(fuse_known, flat[INFO_SQ_SUM], 0.0)
-        qo = np.where(fuse_known, flat[SCATTER], 0.0)
-        Nall = N + Nr
-        q = np.where(s1o > 0, qo + qb + s1o * W0 / (s1o + W0) * (mb - h) ** 2 - Nall, qb - (Nall - 1.0))
-        s1, s2 = s1o + W0, s2o + WW0
-        den = s1 - s2 / s1
-        npts = np.where(fuse_known, flat[POINTS], 0.0) + Nall
-        kk = np.maximum(npts - 1.0, 1.0)
-        crit = reduced_chi2_quantile(kk, spread_z) * kk
-        tau2_new = np.where((spread_z >= 0) & (npts >= 2) & (den > 0) & (q + kk > crit) & (q + kk > ratio * kk),
-                            dersimonian_laird_tau2(q, s1, s2),
-                            0.0)
-    on = spread_z >= 0
-    stats = (reset | fuse) & on
-    tau2 = np.where(stats, tau2_new, np.where(reset, 0.0, tau2_old))
-    L = flat
-    L[INFO_SUM] = np.where(stats, s1, np.where(reset, 0.0, L[INFO_SUM]))
-    L[INFO_SQ_SUM] = np.where(stats, s2, np.where(reset, 0.0, L[INFO_SQ_SUM]))
-    L[SCATTER] = np.where(stats, q, np.where(reset, 0.0, L[SCATTER]))
-    L[MIN_HEIGHT] = np.where(reset, zminr, np.where(fuse_known, np.minimum(L[MIN_HEIGHT], zmin),
-                                                     np.where(fuse_new, zmin, L[MIN_HEIGHT])))
-    L[MAX_HEIGHT] = np.where(reset, zmaxr, np.where(fuse_known, np.maximum(L[MAX_HEIGHT], zmax),
-                                                     np.where(fuse_new, zmax, L[MAX_HEIGHT])))
-    L[POINTS] = np.where(reset, Nr, np.where(fuse_known, L[POINTS] + N, np.where(fuse_new, N, L[POINTS])))
-    if hc is not None:
-        hx, hy, hxy = np.clip(Hx, min_h, max_h), np.clip(Hy, min_h, max_h), Hxy
-    else:
-        hx, hy, hxy = min_h, min_h, 0.0
-    upd = reset | fuse
-    L[HVAR_X] = np.where(reset, min_h, np.where(fuse, hx, L[HVAR_X]))
-    L[HVAR_Y] = np.where(reset, min_h, np.where(fuse, hy, L[HVAR_Y]))
-    L[HVAR_XY] = np.where(reset, 0.0, np.where(fuse, hxy, L[HVAR_XY]))
-    L[TIME] = np.where(upd, float(stamp), L[TIME])
-    L[UPPER_BOUND] = np.where(reset | fuse_new, np.nan, L[UPPER_BOUND])
-    write = upd | change
-    v_post = np.where(write, np.maximum(v_post, min_var), v_post)
-    expire = write & (v_post > max_var)
-    L[ELEVATION] = np.where(write, h_post, L[ELEVATION])
-    nb = np.where(known & ~reset, nb_old, 0.0)
-    L[VARIANCE] = np.where(write, v_post + np.maximum(tau2, nb), L[VARIANCE])
-    L[SPREAD] = np.where(write, tau2, L[SPREAD])
-    L[NEIGHBOUR_SPREAD] = np.where(write, nb, L[NEIGHBOUR_SPREAD])
-    with np.errstate(invalid="ignore"):
-        stale = write & (L[UPPER_BOUND] < L[ELEVATION])
-    L[UPPER_BOUND] = np.where(stale, np.nan, L[UPPER_BOUND])
-    L[:, expire] = np.nan
-    for name in ZERO_WHEN_UNKNOWN:
-        L[LAYERS.index(name), expire] = 0.0
-    return int(seen.sum()), touched_box(geometry, points_map)
