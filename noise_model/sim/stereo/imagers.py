@@ -54,7 +54,8 @@ from ...numba_config import JIT, resolve_threads, threads
 
 __all__ = [
     "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
-    "signal_rate", "signal_rate_reference", "integrate_samples", "auto_exposure", "expose", "to_map_frame",
+    "signal_rate", "signal_rate_reference", "integrate_samples", "integrate_samples_reference", "auto_exposure",
+    "expose", "to_map_frame",
     "shift_columns", "shift_columns_reference", "PLANCK_J_S", "LIGHT_M_S",
 ]
 
@@ -354,20 +355,56 @@ def sample_intrinsics(K, supersample: int) -> np.ndarray:
 
 
 @njit(parallel=True, **JIT)
-def _rate_kernel(rho, E, intr, power, k, out):
-    hs, ws = rho.shape
+def _relative_illumination_kernel(intr, power, out):
+    hs, ws = out.shape
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     for v in prange(hs):
         b = (v - cy) / fy
         for u in range(ws):
             a = (u - cx) / fx
-            r = k * rho[v, u] * E[v, u] * (1.0 + a * a + b * b) ** (-0.5 * power)
+            out[v, u] = (1.0 + a * a + b * b) ** (-0.5 * power)
+
+
+@njit(parallel=True, **JIT)
+def _rate_kernel(rho, E, rel, k, out):
+    hs, ws = rho.shape
+    for v in prange(hs):
+        for u in range(ws):
+            r = k * rho[v, u] * E[v, u] * rel[v, u]
             out[v, u] = r if r > 0.0 else 0.0                  # also 0 for NaN (no surface)
+
+
+@njit(parallel=True, **JIT)
+def _rate_scalar_kernel(rho, E, rel, k, out):
+    hs, ws = rho.shape
+    for v in prange(hs):
+        for u in range(ws):
+            r = k * rho[v, u] * E * rel[v, u]
+            out[v, u] = r if r > 0.0 else 0.0
 
 
 def _rate_constant(focal_px: float, model: ImagerModel) -> float:
     photon_j = PLANCK_J_S * LIGHT_M_S / model.wavelength_m
     return model.quantum_efficiency * model.pixel_area_m2(focal_px) / (4.0 * model.f_number ** 2 * photon_j)
+
+
+#: Relative illumination images by (intrinsics, shape, power): the same for every pose of a camera.
+_RELATIVE_ILLUMINATION: dict = {}
+
+
+def _relative_illumination(intr: np.ndarray, shape, power: float, nthreads: int) -> np.ndarray:
+    """cos^k of the field angle, (1 + a^2 + b^2)^(-k / 2), at every sample of a grid (kept for reuse)."""
+    key = (tuple(intr.tolist()), tuple(shape), float(power))
+    rel = _RELATIVE_ILLUMINATION.get(key)
+    if rel is None:
+        if len(_RELATIVE_ILLUMINATION) >= 8:
+            _RELATIVE_ILLUMINATION.clear()
+        rel = np.empty(shape)
+        with threads(nthreads):
+            _relative_illumination_kernel(intr, float(power), rel)
+        rel.flags.writeable = False
+        _RELATIVE_ILLUMINATION[key] = rel
+    return rel
 
 
 def signal_rate(albedo, irradiance_w_m2, K_samples, focal_px: float, model: ImagerModel,
@@ -389,12 +426,25 @@ def signal_rate(albedo, irradiance_w_m2, K_samples, focal_px: float, model: Imag
         numba threads; the result does not depend on it.
     out : ndarray, shape (Hs, Ws), float64, optional
         Buffer to write into.
+
+    Notes
+    -----
+    The relative illumination depends only on the sample grid, so it is computed once per grid and
+    kept (up to 8 grids).
     """
     rho = np.ascontiguousarray(albedo, dtype=np.float64)
-    E = np.ascontiguousarray(np.broadcast_to(np.asarray(irradiance_w_m2, dtype=np.float64), rho.shape))
+    if rho.ndim != 2:
+        raise ValueError(f"albedo must be a 2-D sample image, got shape {rho.shape}")
+    E = np.asarray(irradiance_w_m2, dtype=np.float64)
     out = _out(out, rho.shape)
-    with threads(resolve_threads(nthreads)):
-        _rate_kernel(rho, E, _intr(K_samples), float(model.vignetting_power), _rate_constant(focal_px, model), out)
+    n = resolve_threads(nthreads)
+    rel = _relative_illumination(_intr(K_samples), rho.shape, model.vignetting_power, n)
+    k = _rate_constant(focal_px, model)
+    with threads(n):
+        if E.ndim == 0:
+            _rate_scalar_kernel(rho, float(E), rel, k, out)
+        else:
+            _rate_kernel(rho, np.ascontiguousarray(np.broadcast_to(E, rho.shape)), rel, k, out)
     return out
 
 
@@ -411,11 +461,110 @@ def signal_rate_reference(albedo, irradiance_w_m2, K_samples, focal_px: float, m
     return np.where(np.isfinite(rate), np.maximum(rate, 0.0), 0.0)
 
 
-def integrate_samples(rate_samples, supersample: int, blur_sigma_px: float) -> np.ndarray:
-    """Lens blur at the sample resolution, then the mean over each pixel's s x s samples.
+#: Largest supersampling whose pixel mean the numba kernel sums in NumPy's order (NumPy sums 8 or more
+#: samples of a row pairwise); larger factors take the NumPy path.
+_KERNEL_MAX_SUPERSAMPLE = 7
 
-    ``blur_sigma_px`` is in output pixels (the sample grid uses s times that). Returns (H, W).
+
+def _blur_weights(sigma_samples: float) -> np.ndarray:
+    """The normalised Gaussian taps of ``scipy.ndimage.gaussian_filter`` (truncate 4), computed as it does."""
+    radius = int(4.0 * sigma_samples + 0.5)
+    x = np.arange(-radius, radius + 1)
+    phi = np.exp(-0.5 / (sigma_samples * sigma_samples) * x ** 2)
+    return np.ascontiguousarray((phi / phi.sum())[::-1])
+
+
+@njit(**JIT)
+def _blur_row(r, v, wts, acc, prod, pad):
+    """Sample row v of the separable blur (columns of rows v - R .. v + R, then along the row; edges
+    clamped) into ``acc`` (Ws,), in the order of scipy's symmetric correlation:
+    c w_0 + sum over j = -R .. -1 of (x_j + x_-j) w_j. Every addition of a product to the running sum is
+    a loop of its own over stored products, so that no multiply-add is fused and no sum is reordered
+    (the project's fastmath flags allow both within one expression)."""
+    hs, ws = r.shape
+    rad = (wts.shape[0] - 1) // 2
+    for u in range(ws):
+        pad[rad + u] = r[v, u] * wts[rad]
+    for j in range(-rad, 0):
+        above = r[min(max(v + j, 0), hs - 1)]
+        below = r[min(max(v - j, 0), hs - 1)]
+        wj = wts[rad + j]
+        for u in range(ws):
+            prod[u] = (above[u] + below[u]) * wj
+        for u in range(ws):
+            pad[rad + u] += prod[u]
+    for k in range(rad):
+        pad[k] = pad[rad]
+        pad[rad + ws + k] = pad[rad + ws - 1]
+    for u in range(ws):
+        acc[u] = pad[rad + u] * wts[rad]
+    for j in range(-rad, 0):
+        wj = wts[rad + j]
+        for u in range(ws):
+            prod[u] = (pad[rad + u + j] + pad[rad + u - j]) * wj
+        for u in range(ws):
+            acc[u] += prod[u]
+
+
+@njit(parallel=True, **JIT)
+def _integrate_kernel(r, wts, s, out):
+    """Blur and s x s pixel mean; each output row from its own s blurred sample rows (one thread each)."""
+    hs, ws = r.shape
+    h, w = out.shape
+    rad = (wts.shape[0] - 1) // 2
+    for y in prange(h):
+        pad = np.empty(ws + 2 * rad)
+        prod = np.empty(ws)
+        row = np.empty(ws)
+        part = np.empty(w)
+        total = np.empty(w)
+        for i in range(s):
+            _blur_row(r, y * s + i, wts, row, prod, pad)
+            for x in range(w):                     # a row's s samples, left to right (NumPy's order)
+                part[x] = row[x * s]
+            for k in range(1, s):
+                for x in range(w):
+                    part[x] += row[x * s + k]
+            if i == 0:
+                for x in range(w):
+                    total[x] = part[x]
+            else:
+                for x in range(w):
+                    total[x] += part[x]
+        n = float(s * s)
+        for x in range(w):
+            out[y, x] = total[x] / n
+
+
+def integrate_samples(rate_samples, supersample: int, blur_sigma_px: float, nthreads: int | None = None) -> np.ndarray:
+    """Lens blur at the sample resolution, then the mean over each pixel's s x s samples (numba).
+
+    ``blur_sigma_px`` is in output pixels (the sample grid uses s times that): a Gaussian of
+    ``scipy.ndimage.gaussian_filter`` (truncated at 4 sigma, edges extended by the nearest sample),
+    applied along the columns, then the rows. Returns (H, W); the same values as
+    :func:`integrate_samples_reference` to the last bit (the kernel keeps scipy's and NumPy's order of
+    every sum), for any thread count.
     """
+    s = int(supersample)
+    r = np.ascontiguousarray(rate_samples, dtype=np.float64)
+    if r.ndim != 2:
+        raise ValueError(f"rate_samples must be a 2-D sample image, got shape {r.shape}")
+    hs, ws = r.shape
+    if hs % s or ws % s:
+        raise ValueError(f"sample image {ws}x{hs} is not a multiple of the supersampling {s}")
+    if not (math.isfinite(blur_sigma_px) and blur_sigma_px >= 0):
+        raise ValueError(f"blur_sigma_px must be finite and >= 0, got {blur_sigma_px!r}")
+    if s > _KERNEL_MAX_SUPERSAMPLE:
+        return integrate_samples_reference(r, s, blur_sigma_px)
+    wts = _blur_weights(blur_sigma_px * s) if blur_sigma_px > 0 else np.ones(1)
+    out = np.empty((hs // s, ws // s))
+    with threads(resolve_threads(nthreads)):
+        _integrate_kernel(r, wts, s, out)
+    return out
+
+
+def integrate_samples_reference(rate_samples, supersample: int, blur_sigma_px: float) -> np.ndarray:
+    """NumPy/scipy reference of :func:`integrate_samples` (``gaussian_filter``, then the mean of each block)."""
     s = int(supersample)
     r = np.asarray(rate_samples, dtype=np.float64)
     if blur_sigma_px > 0:

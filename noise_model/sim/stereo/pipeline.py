@@ -232,9 +232,9 @@ class StereoD435:
                               out=self._buffer("per_irr", (hs, ws)))
         blur = self.imager.blur_sigma_native_px * self.focal_px / self.imager.native_focal_px
         np.nan_to_num(e_proj, copy=False, nan=0.0)
-        e_pix = e_proj.reshape(self.height, s, self.width, s).mean(axis=(1, 3)) if with_irradiance else None
-        rate_p = integrate_samples(np.multiply(per_irr, e_proj, out=e_proj), s, blur)
-        rate_a = integrate_samples(per_irr * self.ambient_w_m2, s, blur) if self.ambient_w_m2 > 0 \
+        e_pix = integrate_samples(e_proj, s, 0.0, self.nthreads) if with_irradiance else None
+        rate_p = integrate_samples(np.multiply(per_irr, e_proj, out=e_proj), s, blur, self.nthreads)
+        rate_a = integrate_samples(per_irr * self.ambient_w_m2, s, blur, self.nthreads) if self.ambient_w_m2 > 0 \
             else np.zeros_like(rate_p)
         return rate_a, rate_p, e_pix, hit
 

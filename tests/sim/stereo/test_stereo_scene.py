@@ -254,6 +254,32 @@ def test_signal_and_integration():
         I.integrate_samples(np.zeros((5, 5)), 2, 0.0)
 
 
+@pytest.mark.parametrize("s, blur", [(2, 0.23), (2, 0.0), (1, 0.9), (3, 0.5), (2, 2.5), (8, 0.3)])
+def test_integration_equals_scipy_and_numpy_to_the_bit(rng, s, blur):
+    r = rng.random((6 * s, 9 * s)) * 10.0 ** rng.integers(0, 8, (6 * s, 9 * s))    # values of very different size
+    r[: s, : s] = 0.0
+    ref = I.integrate_samples_reference(r, s, blur)
+    np.testing.assert_array_equal(I.integrate_samples(r, s, blur, nthreads=1), ref)
+    np.testing.assert_array_equal(I.integrate_samples(r, s, blur, nthreads=2), ref)
+    wide = rng.random((2 * s, 37 * s))                           # one row of pixels, blur wider than the image
+    np.testing.assert_array_equal(I.integrate_samples(wide, s, 3.0), I.integrate_samples_reference(wide, s, 3.0))
+    with pytest.raises(ValueError, match="blur_sigma_px"):
+        I.integrate_samples(r, s, float("nan"))
+
+
+def test_signal_rate_with_a_scalar_irradiance_and_a_new_grid():
+    m = I.ImagerModel(vignetting_power=4.0)
+    K = I.sample_intrinsics(np.array([[300.0, 0, 7.5], [0, 300.0, 3.5], [0, 0, 1]]), 2)
+    albedo = np.linspace(0.0, 1.0, 16 * 32).reshape(16, 32)
+    albedo[3, 4] = np.nan
+    ref = I.signal_rate_reference(albedo, 0.2, K, 300.0, m)
+    for n in (1, 2):
+        np.testing.assert_allclose(I.signal_rate(albedo, 0.2, K, 300.0, m, nthreads=n), ref, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(I.signal_rate(albedo, np.full(albedo.shape, 0.2), K, 300.0, m), ref, rtol=1e-12, atol=0)
+    small = I.signal_rate(albedo[:8, :8], 0.2, K, 300.0, m)         # another grid size: its own field angles
+    np.testing.assert_allclose(small, I.signal_rate_reference(albedo[:8, :8], 0.2, K, 300.0, m), rtol=1e-12)
+
+
 def test_auto_exposure_and_expose(rng):
     m = I.ImagerModel()
     rate = np.full((20, 30), 1e5)
