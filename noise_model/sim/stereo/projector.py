@@ -244,8 +244,10 @@ def shadow_mask_reference(points_proj, view: ProjectorView) -> np.ndarray:
 
 
 @njit(parallel=True, **JIT)
-def _irradiance_kernel(pts, nrm, lit, dirs, peak, inv_2s2, cut2, floor, cell, n_a, n_b, a0, b0, cstart, corder,
-                       out):
+def _irradiance_kernel(pts, nrm, lit, dirs, peak, inv_2s2, cut2, floor, cell, n_a, n_b, a0, b0, cstart, out):
+    """E(X) of the module docstring. ``dirs`` and ``peak`` are in cell order (cell id = ib n_a + ia, then
+    dot index), dots of cell c at cstart[c] .. cstart[c + 1] - 1; the cells ia0 .. ia1 of one grid row are
+    one contiguous run, so each row of the lookup window is a single loop over dots."""
     for i in prange(pts.shape[0]):
         x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
@@ -269,14 +271,12 @@ def _irradiance_kernel(pts, nrm, lit, dirs, peak, inv_2s2, cut2, floor, cell, n_
         ib0 = max(0, int(np.floor((b - reach - b0) / cell)))
         ib1 = min(n_b - 1, int(np.floor((b + reach - b0) / cell)))
         s = 0.0
-        for ib in range(ib0, ib1 + 1):
-            for ia in range(ia0, ia1 + 1):
-                c = ib * n_a + ia
-                for j in range(cstart[c], cstart[c + 1]):
-                    k = corder[j]
-                    t2 = 2.0 - 2.0 * (ux * dirs[k, 0] + uy * dirs[k, 1] + uz * dirs[k, 2])
+        if ia1 >= ia0:
+            for ib in range(ib0, ib1 + 1):
+                for j in range(cstart[ib * n_a + ia0], cstart[ib * n_a + ia1 + 1]):
+                    t2 = 2.0 - 2.0 * (ux * dirs[j, 0] + uy * dirs[j, 1] + uz * dirs[j, 2])
                     if t2 <= cut2:
-                        s += peak[k] * (np.exp(-t2 * inv_2s2) - floor)
+                        s += peak[j] * (np.exp(-t2 * inv_2s2) - floor)
         out[i] = s * cos_i / r2
 
 
@@ -325,9 +325,11 @@ class Projector:
         cid = ib * n_a + ia
         order = np.argsort(cid, kind="stable")
         cstart = np.searchsorted(cid[order], np.arange(n_a * n_b + 1)).astype(np.int64)
-        tables = dict(dirs=np.ascontiguousarray(dirs), peak=powers / (2.0 * math.pi * sigma ** 2),
+        peak = powers / (2.0 * math.pi * sigma ** 2)
+        tables = dict(dirs=np.ascontiguousarray(dirs), peak=peak,
                       inv_2s2=1.0 / (2.0 * sigma ** 2), cut2=cut2, floor=math.exp(-cut2 / (2.0 * sigma ** 2)),
-                      cell=cell, n_a=n_a, n_b=n_b, a0=a0, b0=b0, cstart=cstart, corder=order.astype(np.int64))
+                      cell=cell, n_a=n_a, n_b=n_b, a0=a0, b0=b0, cstart=cstart,
+                      cell_dirs=np.ascontiguousarray(dirs[order]), cell_peak=np.ascontiguousarray(peak[order]))
         object.__setattr__(self, "_tables", tables)
 
     # -- geometry --------------------------------------------------------------------------------
@@ -380,8 +382,8 @@ class Projector:
         if out is None or out.shape != (len(pts),) or out.dtype != np.float64 or not out.flags.c_contiguous:
             out = np.empty(len(pts))
         with threads(n):
-            _irradiance_kernel(pts, nrm, lit, t["dirs"], t["peak"], t["inv_2s2"], t["cut2"], t["floor"], t["cell"],
-                               t["n_a"], t["n_b"], t["a0"], t["b0"], t["cstart"], t["corder"], out)
+            _irradiance_kernel(pts, nrm, lit, t["cell_dirs"], t["cell_peak"], t["inv_2s2"], t["cut2"], t["floor"],
+                               t["cell"], t["n_a"], t["n_b"], t["a0"], t["b0"], t["cstart"], out)
         return out
 
 
