@@ -70,7 +70,6 @@ COST_MAX = 2 * TERM_MAX
 #: Largest census radius: (2 r + 1)^2 - 1 bits must fit the two 64-bit words.
 MAX_RADIUS = 5
 
-_BAND_ROWS = 32           # rows per work item of the box-averaged cost (fixed: results do not depend on threads)
 
 
 def to_10bit(image, name: str = "image") -> np.ndarray:
@@ -277,14 +276,15 @@ def _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y, raw, o
 
 
 @njit(parallel=True, **JIT)
-def _cost_kernel(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, magic, out):
-    """Box-averaged cost, in bands of rows; each band keeps a ring of the 2 box + 1 row sums it needs."""
+def _cost_kernel(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, magic, band_rows, out):
+    """Box-averaged cost, in bands of ``band_rows`` rows; each band keeps a ring of the 2 box + 1 row sums it
+    needs (and computes the 2 box rows above it again). Integer sums: the result does not depend on the bands."""
     h, w, n_disp = out.shape
     n_ring = 2 * box + 1
-    n_bands = (h + _BAND_ROWS - 1) // _BAND_ROWS
+    n_bands = (h + band_rows - 1) // band_rows
     for band in prange(n_bands):
-        y0 = band * _BAND_ROWS
-        y1 = min(h, y0 + _BAND_ROWS)
+        y0 = band * band_rows
+        y1 = min(h, y0 + band_rows)
         ring = np.empty((n_ring, w, n_disp), np.int32)
         raw = np.empty((w, n_disp), np.int32)
         acc = np.zeros((w, n_disp), np.int32)
@@ -385,8 +385,9 @@ def cost_volume(left10, right10, n_disp: int, radius: int = 4, lambda_census: fl
     else:
         lo_l, hi_l, lo_r, hi_r = census
     out = _buffer(out, L.shape + (n_disp,))
+    band_rows = max(1, -(-L.shape[0] // n))                 # one band per thread: fewest rows computed twice
     with threads(n):
-        _cost_kernel(lo_l, hi_l, lo_r, hi_r, L, R, lut_c, lut_a, b, _magic(b), out)
+        _cost_kernel(lo_l, hi_l, lo_r, hi_r, L, R, lut_c, lut_a, b, _magic(b), band_rows, out)
     return out
 
 

@@ -235,30 +235,36 @@ def _wta_kernel(S, texture, second_peak, texture_min, lr_max, mode, table, scale
         dl = np.full(w, -1.0)
         dr = np.full(w, -1.0)
         for x in range(w):
+            row = S[y, x]
             dmax = min(n_disp - 1, x)
+            m = row[0]
+            for d in range(1, dmax + 1):                   # the lowest cost (a branch-free, vectorised loop),
+                m = min(m, row[d])
             best = 0
-            s1 = np.int64(S[y, x, 0])
-            for d in range(1, dmax + 1):
-                v = np.int64(S[y, x, d])
-                if v < s1:
-                    s1 = v
-                    best = d
+            while row[best] != m:                          # then its first disparity
+                best += 1
+            s1 = np.int64(m)
             if best < 1 or best > dmax - 1:
                 reason[y, x] = 1
                 continue
-            s2 = np.int64(1) << 40
-            for d in range(dmax + 1):
-                if abs(d - best) > 1:
-                    v = np.int64(S[y, x, d])
-                    if v < s2:
-                        s2 = v
+            s2 = np.int64(1) << 40                         # lowest cost at |d - best| > 1
+            if best >= 2:
+                m = row[0]
+                for d in range(1, best - 1):
+                    m = min(m, row[d])
+                s2 = np.int64(m)
+            if best + 2 <= dmax:
+                m = row[best + 2]
+                for d in range(best + 3, dmax + 1):
+                    m = min(m, row[d])
+                s2 = min(s2, np.int64(m))
             if second_peak > 0 and not ((s2 - s1) * 1024 > second_peak * s1):
                 reason[y, x] = 2
                 continue
             if texture[y, x] < texture_min:
                 reason[y, x] = 3
                 continue
-            off = _subpixel(float(S[y, x, best - 1]), float(s1), float(S[y, x, best + 1]), mode, table)
+            off = _subpixel(float(row[best - 1]), float(s1), float(row[best + 1]), mode, table)
             dl[x] = np.floor((best + off) * scale + 0.5) / scale
         for xr in range(w):
             dmax = min(n_disp - 1, w - 1 - xr)
