@@ -34,7 +34,8 @@ __all__ = ["aggregate", "aggregate_reference", "check_penalties", "N_PATHS"]
 #: Number of paths summed into S.
 N_PATHS = 4
 
-_BIG = 1 << 24            # padding at d = -1 and d = D: never the minimum
+_BIG = 1 << 24            # padding at d = -1 and d = D of the reference: never the minimum
+_PAD = 1 << 14            # the same padding in the kernels' int16 paths (above every L_r, see _step)
 _BLOCK_COLUMNS = 16       # columns per work item of the vertical paths
 
 
@@ -53,20 +54,25 @@ def check_penalties(p1, p2) -> tuple[int, int]:
 
 @njit(**JIT)
 def _step(cost, prev, cur, n_disp, p1, p2, minprev):
-    """One path step: cur[1..D] from prev[1..D] (padded at 0 and D + 1); returns min of cur."""
-    m = _BIG
+    """One path step: cur[1..D] from prev[1..D] (padded at 0 and D + 1 with :data:`_PAD`); returns min of cur.
+
+    int16 throughout, every intermediate cast back to int16 so that the loop runs on 16 lanes per vector:
+    L_r <= COST_MAX + P2 <= 16383 (the bound :func:`check_penalties` keeps), the padding 16384 plus P1
+    and the previous minimum plus P2 stay below 32767, and the padding never wins over a real L_r."""
+    c = np.int16(minprev + p2)
+    mp = np.int16(minprev)
+    m = np.int16(_PAD)
     for d in range(n_disp):
-        a = prev[d + 1]
-        b = min(prev[d], prev[d + 2]) + p1
-        c = minprev + p2
-        if b < a:
-            a = b
-        if c < a:
-            a = c
-        v = np.int32(cost[d]) + a - minprev
+        a = prev[d]
+        b = prev[d + 2]
+        t = a if a < b else b
+        t = np.int16(t + p1)
+        z = prev[d + 1]
+        t = t if t < z else z
+        t = t if t < c else c
+        v = np.int16(np.int16(cost[d]) + np.int16(t - mp))
         cur[d + 1] = v
-        if v < m:
-            m = v
+        m = v if v < m else m
     return m
 
 
@@ -74,29 +80,31 @@ def _step(cost, prev, cur, n_disp, p1, p2, minprev):
 def _horizontal_kernel(C, p1, p2, S):
     h, w, n_disp = C.shape
     for y in prange(h):
-        prev = np.full(n_disp + 2, _BIG, np.int32)
-        cur = np.full(n_disp + 2, _BIG, np.int32)
+        prev = np.full(n_disp + 2, _PAD, np.int16)
+        cur = np.full(n_disp + 2, _PAD, np.int16)
         # left to right: S = L
-        m = _BIG
+        m = np.int16(_PAD)
         for d in range(n_disp):
-            prev[d + 1] = C[y, 0, d]
+            v = np.int16(C[y, 0, d])
+            prev[d + 1] = v
             S[y, 0, d] = C[y, 0, d]
-            m = min(m, np.int32(C[y, 0, d]))
+            m = v if v < m else m
         for x in range(1, w):
             m = _step(C[y, x], prev, cur, n_disp, p1, p2, m)
             for d in range(n_disp):
-                S[y, x, d] = cur[d + 1]
+                S[y, x, d] = np.uint16(cur[d + 1])
             prev, cur = cur, prev
         # right to left: S += L
-        m = _BIG
+        m = np.int16(_PAD)
         for d in range(n_disp):
-            prev[d + 1] = C[y, w - 1, d]
-            S[y, w - 1, d] += C[y, w - 1, d]
-            m = min(m, np.int32(C[y, w - 1, d]))
+            v = np.int16(C[y, w - 1, d])
+            prev[d + 1] = v
+            S[y, w - 1, d] = np.uint16(S[y, w - 1, d] + C[y, w - 1, d])
+            m = v if v < m else m
         for x in range(w - 2, -1, -1):
             m = _step(C[y, x], prev, cur, n_disp, p1, p2, m)
             for d in range(n_disp):
-                S[y, x, d] += cur[d + 1]
+                S[y, x, d] = np.uint16(S[y, x, d] + np.uint16(cur[d + 1]))
             prev, cur = cur, prev
 
 
@@ -108,24 +116,25 @@ def _vertical_kernel(C, p1, p2, S):
         x0 = b * _BLOCK_COLUMNS
         x1 = min(w, x0 + _BLOCK_COLUMNS)
         nb = x1 - x0
-        prev = np.full((nb, n_disp + 2), _BIG, np.int32)
-        cur = np.full((nb, n_disp + 2), _BIG, np.int32)
-        mins = np.empty(nb, np.int32)
+        prev = np.full((nb, n_disp + 2), _PAD, np.int16)
+        cur = np.full((nb, n_disp + 2), _PAD, np.int16)
+        mins = np.empty(nb, np.int16)
         for direction in range(2):
             for k in range(h):
                 y = k if direction == 0 else h - 1 - k
                 for j in range(nb):
                     x = x0 + j
                     if k == 0:
-                        m = _BIG
+                        m = np.int16(_PAD)
                         for d in range(n_disp):
-                            cur[j, d + 1] = C[y, x, d]
-                            m = min(m, np.int32(C[y, x, d]))
+                            v = np.int16(C[y, x, d])
+                            cur[j, d + 1] = v
+                            m = v if v < m else m
                     else:
                         m = _step(C[y, x], prev[j], cur[j], n_disp, p1, p2, mins[j])
                     mins[j] = m
                     for d in range(n_disp):
-                        S[y, x, d] += cur[j, d + 1]
+                        S[y, x, d] = np.uint16(S[y, x, d] + np.uint16(cur[j, d + 1]))
                 prev, cur = cur, prev
 
 
@@ -162,8 +171,8 @@ def aggregate(cost, p1: int, p2: int, out=None, nthreads: int | None = None) -> 
     S = out if (out is not None and out.shape == C.shape and out.dtype == np.uint16 and out.flags.c_contiguous
                 and out is not C) else np.empty(C.shape, np.uint16)
     with threads(resolve_threads(nthreads)):
-        _horizontal_kernel(C, np.int32(p1), np.int32(p2), S)
-        _vertical_kernel(C, np.int32(p1), np.int32(p2), S)
+        _horizontal_kernel(C, np.int16(p1), np.int16(p2), S)
+        _vertical_kernel(C, np.int16(p1), np.int16(p2), S)
     return S
 
 

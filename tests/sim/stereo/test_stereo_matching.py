@@ -118,6 +118,16 @@ def test_aggregate_matches_reference(rng, shape):
     np.testing.assert_array_equal(S, G.aggregate(cost, 60, 342, nthreads=2))
 
 
+@pytest.mark.parametrize("p1, p2", [(0, 14337), (14337, 14337), (3, 14337), (155, 190)])
+def test_aggregate_at_the_largest_penalties_matches_reference(rng, p1, p2):
+    """The kernels' int16 paths at the largest P2 that keeps S in uint16: costs at COST_MAX, random and 1-D."""
+    for cost in (np.full((5, 6, 4), C.COST_MAX, np.uint16), rng.integers(0, C.COST_MAX + 1, (6, 7, 3)).astype(np.uint16),
+                 rng.integers(C.COST_MAX - 40, C.COST_MAX + 1, (4, 5, 1)).astype(np.uint16)):
+        S = G.aggregate(cost, p1, p2, nthreads=2)
+        np.testing.assert_array_equal(S, G.aggregate_reference(cost, p1, p2))
+    np.testing.assert_array_equal(G.aggregate(np.full((3, 3, 2), C.COST_MAX, np.uint16), p1, p2), 4 * C.COST_MAX)
+
+
 def test_aggregate_of_a_constant_volume():
     cost = np.full((5, 6, 4), 100, np.uint16)
     np.testing.assert_array_equal(G.aggregate(cost, 10, 20), np.full((5, 6, 4), 400))
