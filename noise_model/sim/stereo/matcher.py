@@ -266,18 +266,23 @@ def _wta_kernel(S, texture, second_peak, texture_min, lr_max, mode, table, scale
                 continue
             off = _subpixel(float(row[best - 1]), float(s1), float(row[best + 1]), mode, table)
             dl[x] = np.floor((best + off) * scale + 0.5) / scale
+        rmin = np.empty(w, S.dtype)                    # rmin[w - 1 - xr]: the lowest S(xr + d, d) over d,
+        for q in range(w):                             # gathered along each left pixel's row of S
+            rmin[q] = S[y, w - 1 - q, 0]
+        for x in range(1, w):
+            row = S[y, x]
+            q0 = w - 1 - x
+            for d in range(1, min(n_disp - 1, x) + 1):
+                rmin[q0 + d] = min(rmin[q0 + d], row[d])
         for xr in range(w):
             dmax = min(n_disp - 1, w - 1 - xr)
+            m = rmin[w - 1 - xr]
             best = 0
-            s1 = np.int64(S[y, xr, 0])
-            for d in range(1, dmax + 1):
-                v = np.int64(S[y, xr + d, d])
-                if v < s1:
-                    s1 = v
-                    best = d
+            while S[y, xr + best, best] != m:          # its first disparity
+                best += 1
             if best < 1 or best > dmax - 1:
                 continue
-            off = _subpixel(float(S[y, xr + best - 1, best - 1]), float(s1), float(S[y, xr + best + 1, best + 1]),
+            off = _subpixel(float(S[y, xr + best - 1, best - 1]), float(m), float(S[y, xr + best + 1, best + 1]),
                             mode, table)
             dr[xr] = np.floor((best + off) * scale + 0.5) / scale
         for x in range(w):
