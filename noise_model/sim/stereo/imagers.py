@@ -55,7 +55,7 @@ from ...numba_config import JIT, resolve_threads, threads
 __all__ = [
     "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
     "signal_rate", "signal_rate_reference", "integrate_samples", "integrate_samples_reference", "auto_exposure",
-    "expose", "to_map_frame",
+    "expose", "to_map_frame", "to_map_frame_reference", "irradiance_rate", "irradiance_rate_reference",
     "shift_columns", "shift_columns_reference", "PLANCK_J_S", "LIGHT_M_S",
 ]
 
@@ -243,20 +243,93 @@ def _out(buf, shape) -> np.ndarray:
     return np.empty(shape)
 
 
+@njit(parallel=True, **JIT)
+def _rigid_shift_kernel(pts, nrm, R, t, shift_x, out_p, out_n):
+    for i in prange(pts.shape[0]):
+        for r in range(3):
+            out_p[i, r] = R[r, 0] * pts[i, 0] + R[r, 1] * pts[i, 1] + R[r, 2] * pts[i, 2] + t[r]
+            out_n[i, r] = R[r, 0] * nrm[i, 0] + R[r, 1] * nrm[i, 1] + R[r, 2] * nrm[i, 2]
+        pts[i, 0] += shift_x
+
+
 def to_map_frame(points_cam, normals_cam, T_map_cam, nthreads: int | None = None,
-                 out=(None, None)) -> tuple[np.ndarray, np.ndarray]:
+                 out=(None, None), shift_x_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Points (N, 3) and normals (N, 3) from the camera frame into the map frame: R p + t and R n (numba).
 
-    ``out`` may hold two (N, 3) float64 buffers to write into.
+    ``out`` may hold two (N, 3) float64 buffers to write into. With ``shift_x_m``, ``points_cam`` (a
+    C-contiguous float64 (N, 3) array) is then moved in place by ``shift_x_m`` [m] along its x axis, in the
+    same pass (the renderer's step from the imager's frame into the projector's, which has the same
+    orientation); the map-frame points are those of the points before the move.
     """
+    if shift_x_m is not None and not (isinstance(points_cam, np.ndarray) and points_cam.dtype == np.float64
+                                      and points_cam.flags.c_contiguous and points_cam.size % 3 == 0):
+        raise ValueError("points_cam must be a C-contiguous float64 (N, 3) array to be moved in place")
     p = np.ascontiguousarray(points_cam, dtype=np.float64).reshape(-1, 3)
     n = np.ascontiguousarray(normals_cam, dtype=np.float64).reshape(-1, 3)
     T = np.asarray(T_map_cam, dtype=np.float64)
     out_p = _out(out[0], p.shape)
     out_n = _out(out[1], n.shape)
+    R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
     with threads(resolve_threads(nthreads)):
-        _rigid_kernel(p, n, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), out_p, out_n)
+        if shift_x_m is None:
+            _rigid_kernel(p, n, R, t, out_p, out_n)
+        else:
+            _rigid_shift_kernel(p, n, R, t, float(shift_x_m), out_p, out_n)
     return out_p, out_n
+
+
+def to_map_frame_reference(points_cam, normals_cam, T_map_cam, shift_x_m: float | None = None):
+    """NumPy reference of :func:`to_map_frame` (moves ``points_cam`` in place likewise)."""
+    T = np.asarray(T_map_cam, dtype=np.float64)
+    p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+    n = np.asarray(normals_cam, dtype=np.float64).reshape(-1, 3)
+    out_p = p @ T[:3, :3].T + T[:3, 3]
+    out_n = n @ T[:3, :3].T
+    if shift_x_m is not None:
+        p[:, 0] += shift_x_m
+    return out_p, out_n
+
+
+@njit(parallel=True, **JIT)
+def _irradiance_rate_kernel(per_irr, irr, out):
+    big = np.finfo(np.float64).max
+    for i in prange(irr.shape[0]):
+        e = irr[i]
+        if np.isnan(e):
+            e = 0.0
+        elif e == np.inf:
+            e = big
+        elif e == -np.inf:
+            e = -big
+        irr[i] = e
+        out[i] = per_irr[i] * e
+
+
+def irradiance_rate(rate_per_irradiance, irradiance_w_m2, nthreads: int | None = None, out=None) -> np.ndarray:
+    """The electron rate of the projector's light per sample, rate = rate_per_irradiance * E (numba).
+
+    ``irradiance_w_m2`` (a C-contiguous float64 array) has its NaN (no surface) set to 0 in place first,
+    as ``np.nan_to_num`` does (infinities to the largest finite value), so that it can be integrated
+    too. ``rate_per_irradiance`` [e-/s per W/m^2] has the same shape. Returns the rate [e-/s] (``out``
+    if given: a float64 buffer of that shape).
+    """
+    irr = irradiance_w_m2
+    if not (isinstance(irr, np.ndarray) and irr.dtype == np.float64 and irr.flags.c_contiguous):
+        raise ValueError("irradiance_w_m2 must be a C-contiguous float64 array (it is cleaned in place)")
+    per = np.ascontiguousarray(rate_per_irradiance, dtype=np.float64)
+    if per.shape != irr.shape:
+        raise ValueError(f"rate_per_irradiance {per.shape} and irradiance_w_m2 {irr.shape} differ in shape")
+    out = _out(out, irr.shape)
+    with threads(resolve_threads(nthreads)):
+        _irradiance_rate_kernel(per.reshape(-1), irr.reshape(-1), out.reshape(-1))
+    return out
+
+
+def irradiance_rate_reference(rate_per_irradiance, irradiance_w_m2) -> np.ndarray:
+    """NumPy reference of :func:`irradiance_rate` (cleans ``irradiance_w_m2`` in place likewise)."""
+    np.nan_to_num(irradiance_w_m2, copy=False, nan=0.0)
+    with np.errstate(over="ignore"):                      # an infinite irradiance stays infinite
+        return np.multiply(rate_per_irradiance, irradiance_w_m2)
 
 
 def _intr(K) -> np.ndarray:

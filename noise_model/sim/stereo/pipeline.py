@@ -32,7 +32,7 @@ import numpy as np
 
 from ...numba_config import resolve_threads
 from .imagers import Exposure, ImagerModel, auto_exposure, expose, integrate_samples, sample_intrinsics, signal_rate
-from .imagers import surface_geometry, to_map_frame
+from .imagers import irradiance_rate, surface_geometry, to_map_frame
 from .materials import MaterialMap, Texture, Uniform, concrete, white_wall
 from .matcher import MatchResult, disparity_to_depth, match, preset
 from .projector import Projector, ProjectorView
@@ -218,22 +218,23 @@ class StereoD435:
                                     out=(self._buffer("pts", (hs, ws, 3)), self._buffer("nrm", (hs, ws, 3))))
         p = pts.reshape(-1, 3)
         n = nrm.reshape(-1, 3)
+        # map frame for the materials; p then moves from the camera frame into the projector frame
         p_map, n_map = to_map_frame(p, n, T_map_i, self.nthreads,
-                                    out=(self._buffer("p_map", p.shape), self._buffer("n_map", n.shape)))
+                                    out=(self._buffer("p_map", p.shape), self._buffer("n_map", n.shape)),
+                                    shift_x_m=x_cam_m - self.projector.offset_m)
         albedo = self.materials.evaluate(p_map, n_map, self.nthreads, out=self._buffer("albedo", (hs * ws,)),
                                          scratch=self._buffer("scratch", (hs * ws,)),
                                          index=index[0].reshape(-1) if own else None,
                                          scene=scene if own else None).reshape(hs, ws)
-        p[:, 0] += x_cam_m - self.projector.offset_m                 # camera frame -> projector frame
         e_proj = self.projector.irradiance(p, n, occlusion=view, nthreads=self.nthreads,
                                            out=self._buffer("e_proj", (hs * ws,))).reshape(hs, ws)
         # e-/s per W/m^2 of irradiance at each sample (0 where there is no surface)
         per_irr = signal_rate(albedo, 1.0, Ks, self.focal_px, self.imager, self.nthreads,
                               out=self._buffer("per_irr", (hs, ws)))
         blur = self.imager.blur_sigma_native_px * self.focal_px / self.imager.native_focal_px
-        np.nan_to_num(e_proj, copy=False, nan=0.0)
-        e_pix = integrate_samples(e_proj, s, 0.0, self.nthreads) if with_irradiance else None
-        rate_p = integrate_samples(np.multiply(per_irr, e_proj, out=e_proj), s, blur, self.nthreads)
+        rate_samples = irradiance_rate(per_irr, e_proj, self.nthreads, out=self._buffer("rate", (hs, ws)))
+        e_pix = integrate_samples(e_proj, s, 0.0, self.nthreads) if with_irradiance else None   # NaN now 0
+        rate_p = integrate_samples(rate_samples, s, blur, self.nthreads)
         rate_a = integrate_samples(per_irr * self.ambient_w_m2, s, blur, self.nthreads) if self.ambient_w_m2 > 0 \
             else np.zeros_like(rate_p)
         return rate_a, rate_p, e_pix, hit

@@ -280,6 +280,46 @@ def test_signal_rate_with_a_scalar_irradiance_and_a_new_grid():
     np.testing.assert_allclose(small, I.signal_rate_reference(albedo[:8, :8], 0.2, K, 300.0, m), rtol=1e-12)
 
 
+def test_to_map_frame_and_the_move_into_the_projector_frame(rng):
+    p = rng.normal(size=(500, 3))
+    p[7] = np.nan
+    n = rng.normal(size=(500, 3))
+    a, b, c = 0.3, -1.1, 2.0
+    R = (np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+         @ np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
+         @ np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]]))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, (1.0, -2.0, 0.5)
+    ref_p, ref_n = I.to_map_frame_reference(p.copy(), n, T)
+    for nthreads in (1, 2):
+        q = p.copy()
+        got_p, got_n = I.to_map_frame(q, n, T, nthreads, shift_x_m=-0.025)
+        np.testing.assert_allclose(got_p, ref_p, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got_n, ref_n, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(q[:, 0], p[:, 0] - 0.025)              # moved in place, after the transform
+        np.testing.assert_array_equal(q[:, 1:], p[:, 1:])
+    np.testing.assert_array_equal(I.to_map_frame(p, n, T)[0], got_p)          # without the move: p unchanged
+    with pytest.raises(ValueError, match="in place"):
+        I.to_map_frame(p.astype(np.float32), n, T, shift_x_m=0.1)
+
+
+def test_irradiance_rate_cleans_like_nan_to_num(rng):
+    e = rng.random((30, 40))
+    e[3, 4], e[5, 6], e[7, 8] = np.nan, np.inf, -np.inf
+    per = rng.random((30, 40)) * 1e3
+    e_ref = e.copy()
+    ref = I.irradiance_rate_reference(per, e_ref)
+    for nthreads in (1, 2):
+        got_e = e.copy()
+        np.testing.assert_array_equal(I.irradiance_rate(per, got_e, nthreads), ref)
+        np.testing.assert_array_equal(got_e, e_ref)
+    assert ref[3, 4] == 0.0 and e_ref[3, 4] == 0.0
+    with pytest.raises(ValueError, match="in place"):
+        I.irradiance_rate(per, e.astype(np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        I.irradiance_rate(per[:, :3], e)
+
+
 def test_auto_exposure_and_expose(rng):
     m = I.ImagerModel()
     rate = np.full((20, 30), 1e5)
