@@ -279,8 +279,9 @@ class StereoD435:
         """One noisy infrared pair (left, right) at the auto (or manual) exposure of the left image."""
         exposure = auto_exposure(ir.rate_left, self.imager)
         c = self.projector.speckle_contrast
-        left = expose(ir.ambient_left, ir.projector_left, exposure, rng, self.imager, c, self.focal_px)
-        right = expose(ir.ambient_right, ir.projector_right, exposure, rng, self.imager, c, self.focal_px)
+        left = expose(ir.ambient_left, ir.projector_left, exposure, rng, self.imager, c, self.focal_px, self.nthreads)
+        right = expose(ir.ambient_right, ir.projector_right, exposure, rng, self.imager, c, self.focal_px,
+                       self.nthreads)
         return left, right, exposure
 
     def depth(self, left, right) -> tuple[np.ndarray, MatchResult]:

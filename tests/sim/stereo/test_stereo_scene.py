@@ -343,6 +343,27 @@ def test_auto_exposure_and_expose(rng):
     assert spk.astype(float).std() > 2 * img.astype(float).std()
 
 
+@pytest.mark.parametrize("kw", [dict(), dict(output_bits=10), dict(read_noise_e=0.0), dict(pointing_jitter_rad=0.0),
+                                dict(exposure_s=0.02, gain=3.7, black_level_dn=0.0)])
+def test_expose_equals_its_reference_to_the_bit(rng, kw):
+    """The same draws and the same image as the NumPy passes: jitter, speckle, ambient, saturation, any thread count."""
+    m = I.ImagerModel(**kw)
+    proj = rng.random((23, 31)) * 10.0 ** rng.uniform(2, 6, (23, 31))
+    amb = rng.random((23, 31)) * 1e4
+    amb[:, :3] = 0.0
+    proj[5, 5] = 1e12                                                       # saturates
+    ex = I.auto_exposure(amb + proj, m) if m.exposure_s is None else I.Exposure(m.exposure_s, m.gain)
+    for speckle, focal in ((0.4, 400.0), (0.0, None), (0.4, None)):
+        ref = I.expose_reference(amb, proj, ex, np.random.default_rng(3), m, speckle, focal)
+        for nthreads in (1, 2):
+            got = I.expose(amb, proj, ex, np.random.default_rng(3), m, speckle, focal, nthreads)
+            assert got.dtype == ref.dtype
+            np.testing.assert_array_equal(got, ref)
+    zero = I.expose(np.zeros_like(amb), proj, ex, np.random.default_rng(4), m, 0.4, 400.0)     # no ambient light
+    np.testing.assert_array_equal(zero, I.expose_reference(np.zeros_like(amb), proj, ex, np.random.default_rng(4), m,
+                                                           0.4, 400.0))
+
+
 @pytest.mark.parametrize("bad", [dict(f_number=0.0), dict(quantum_efficiency=1.5), dict(output_bits=12),
                                  dict(supersample=0), dict(exposure_s=-1.0), dict(ae_target=1.0)])
 def test_imager_rejects_bad_values(bad):
