@@ -259,20 +259,31 @@ def _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y, raw, o
             raw[x, d] = lut_c[popcount64(a ^ lr[xr]) + popcount64(b ^ hr[xr])] + lut_a[abs(c - ir[xr])]
         for d in range(dmax + 1, n_disp):
             raw[x, d] = COST_MAX                           # no right pixel: the worst cost
+    first = out[0]
     for d in range(n_disp):
-        out[0, d] = 0
+        first[d] = 0
     for x in range(min(box + 1, w)):
         for d in range(n_disp):
-            out[0, d] += raw[x, d]
-    for x in range(1, w):
-        for d in range(n_disp):
-            out[x, d] = out[x - 1, d]
-        if x + box < w:
+            first[d] += raw[x, d]
+    for x in range(1, w):                                  # slide the window: one pass per column
+        prev = out[x - 1]
+        cur = out[x]
+        if x + box < w and x - box - 1 >= 0:
+            add = raw[x + box]
+            sub = raw[x - box - 1]
             for d in range(n_disp):
-                out[x, d] += raw[x + box, d]
-        if x - box - 1 >= 0:
+                cur[d] = prev[d] + add[d] - sub[d]
+        elif x + box < w:
+            add = raw[x + box]
             for d in range(n_disp):
-                out[x, d] -= raw[x - box - 1, d]
+                cur[d] = prev[d] + add[d]
+        elif x - box - 1 >= 0:
+            sub = raw[x - box - 1]
+            for d in range(n_disp):
+                cur[d] = prev[d] - sub[d]
+        else:
+            for d in range(n_disp):
+                cur[d] = prev[d]
 
 
 @njit(parallel=True, **JIT)
@@ -290,25 +301,36 @@ def _cost_kernel(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, magic,
         acc = np.zeros((w, n_disp), np.int32)
         first = max(0, y0 - box)
         for yy in range(first, min(h, y0 + box)):
-            _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, yy, raw, ring[yy % n_ring])
-            acc += ring[yy % n_ring]
+            row = ring[yy % n_ring]
+            _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, yy, raw, row)
+            for x in range(w):
+                for d in range(n_disp):
+                    acc[x, d] += row[x, d]
         for y in range(y0, y1):
-            slot = (y + box) % n_ring
-            if y - box - 1 >= first:
-                acc -= ring[slot]
-            if y + box < h:
-                _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y + box, raw, ring[slot])
-                acc += ring[slot]
+            row = ring[(y + box) % n_ring]
+            if y - box - 1 >= first:                       # the row leaving the window
+                for x in range(w):
+                    for d in range(n_disp):
+                        acc[x, d] -= row[x, d]
+            if y + box < h:                                # the row entering it, in the same slot
+                _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y + box, raw, row)
+                for x in range(w):
+                    for d in range(n_disp):
+                        acc[x, d] += row[x, d]
             ny = min(h - 1, y + box) - max(0, y - box) + 1
             for x in range(w):
                 x_lo = max(0, x - box)
                 x_hi = min(w - 1, x + box)
                 n = ny * (x_hi - x_lo + 1)
-                for d in range(n_disp):
-                    if d > x:                              # the centre's right pixel does not exist
-                        out[y, x, d] = COST_MAX
-                    else:
-                        out[y, x, d] = ((acc[x, d] + (n >> 1)) * magic[n]) >> 32
+                mg = magic[n]
+                half = np.int64(n >> 1)
+                dm = min(x, n_disp - 1)
+                a = acc[x]
+                o = out[y, x]
+                for d in range(dm + 1):
+                    o[d] = np.uint16(((np.int64(a[d]) + half) * mg) >> 32)
+                for d in range(dm + 1, n_disp):            # the centre's right pixel does not exist
+                    o[d] = COST_MAX
 
 
 def _check_pair(left10, right10):
