@@ -155,12 +155,22 @@ def _uniform_kernel(p, value, out):
         out[i] = value if (np.isfinite(p[i, 0]) and np.isfinite(p[i, 1]) and np.isfinite(p[i, 2])) else np.nan
 
 
-@njit(**JIT)
+_COUNT_CHUNKS = 64        # fixed chunks of the code count (integer sums: any thread count gives the same)
+
+
+@njit(parallel=True, **JIT)
 def _count_codes(code, n_codes):
+    """Points per material code (codes < 0 left out), counted over fixed chunks in parallel."""
+    n = code.shape[0]
+    partial = np.zeros((_COUNT_CHUNKS, n_codes), np.int64)
+    for k in prange(_COUNT_CHUNKS):
+        for i in range(k * n // _COUNT_CHUNKS, (k + 1) * n // _COUNT_CHUNKS):
+            if code[i] >= 0:
+                partial[k, code[i]] += 1
     counts = np.zeros(n_codes, np.int64)
-    for i in range(code.shape[0]):
-        if code[i] >= 0:
-            counts[code[i]] += 1
+    for k in range(_COUNT_CHUNKS):
+        for c in range(n_codes):
+            counts[c] += partial[k, c]
     return counts
 
 
@@ -524,7 +534,8 @@ class MaterialMap:
         else:
             with threads(n):
                 _assign_kernel(p, lo, hi, gz, tol, use_ground, code)
-        present = np.flatnonzero(_count_codes(code, len(materials)))
+        with threads(n):
+            present = np.flatnonzero(_count_codes(code, len(materials)))
         out = _out(out, len(p))
         if len(present) == 1:                      # one material for every surface point (NaN stays NaN)
             return materials[present[0]].evaluate(p, nrm, n, out=out)

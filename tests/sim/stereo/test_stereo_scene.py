@@ -88,6 +88,15 @@ def test_texture_and_map_match_their_references(rng):
                                equal_nan=True)
 
 
+def test_material_codes_are_counted_as_bincount(rng):
+    for n in (0, 5, 63, 64, 1000):
+        code = rng.integers(-1, 4, n).astype(np.int32)
+        want = np.bincount(code[code >= 0], minlength=4)
+        for nthreads in (1, 2):
+            with MT.threads(nthreads):
+                np.testing.assert_array_equal(MT._count_codes(code, 4), want)
+
+
 def test_material_map_assigns_by_position():
     mm = MT.MaterialMap(default=MT.Uniform(0.8, "wall"), ground=MT.Uniform(0.3, "floor"),
                         regions=(((0.0, 0.0, 0.0), (1.0, 1.0, 1.0), MT.Uniform(0.1, "box")),))
