@@ -257,11 +257,12 @@ def _hsum_row(lo_l, hi_l, lo_r, hi_r, img_l, img_r, lut_c, lut_a, box, y, raw, o
     for x in range(w):
         dmax = min(n_disp - 1, x)
         a, b, c = ll[x], hl[x], il[x]
+        lrx, hrx, irx = lr[x::-1], hr[x::-1], ir[x::-1]    # right pixel x - d at index d (a plain loop counter)
+        rx = raw[x]
         for d in range(dmax + 1):
-            xr = x - d
-            raw[x, d] = lut_c[popcount64(a ^ lr[xr]) + popcount64(b ^ hr[xr])] + lut_a[abs(c - ir[xr])]
+            rx[d] = lut_c[popcount64(a ^ lrx[d]) + popcount64(b ^ hrx[d])] + lut_a[abs(c - irx[d])]
         for d in range(dmax + 1, n_disp):
-            raw[x, d] = COST_MAX                           # no right pixel: the worst cost
+            rx[d] = COST_MAX                               # no right pixel: the worst cost
     first = out[0]
     for d in range(n_disp):
         first[d] = 0

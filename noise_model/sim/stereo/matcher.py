@@ -271,9 +271,9 @@ def _wta_kernel(S, texture, second_peak, texture_min, lr_max, mode, table, scale
             rmin[q] = S[y, w - 1 - q, 0]
         for x in range(1, w):
             row = S[y, x]
-            q0 = w - 1 - x
+            seg = rmin[w - 1 - x:]                     # a view, so that the index is a plain loop counter
             for d in range(1, min(n_disp - 1, x) + 1):
-                rmin[q0 + d] = min(rmin[q0 + d], row[d])
+                seg[d] = min(seg[d], row[d])
         for xr in range(w):
             dmax = min(n_disp - 1, w - 1 - xr)
             m = rmin[w - 1 - xr]
