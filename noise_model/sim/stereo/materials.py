@@ -126,9 +126,15 @@ def _fbm_kernel(s, inv_spacing, weights, table, out):
 
 
 @njit(parallel=True, **JIT)
-def _texture_kernel(p, nrm, inv_spacing, weights, table, mean, contrast, weave_k, weave_contrast, out):
-    """Tri-planar coordinates, fBm and weave of :class:`Texture` in one pass (see Texture.evaluate_reference)."""
+def _texture_kernel(p, nrm, inv_spacing, weights, table, mean, contrast, weave_k, weave_contrast, code, c, out):
+    """Tri-planar coordinates, fBm and weave of :class:`Texture` in one pass (see Texture.evaluate_reference).
+
+    With c >= 0 only the points of material code c are evaluated (NaN where code < 0, the rest untouched)."""
     for i in prange(p.shape[0]):
+        if c >= 0 and code[i] != c:
+            if code[i] < 0:
+                out[i] = np.nan
+            continue
         x, y, z = p[i, 0], p[i, 1], p[i, 2]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
             out[i] = np.nan
@@ -155,6 +161,7 @@ def _uniform_kernel(p, value, out):
         out[i] = value if (np.isfinite(p[i, 0]) and np.isfinite(p[i, 1]) and np.isfinite(p[i, 2])) else np.nan
 
 
+_NO_CODES = np.zeros(0, np.int32)   # the code array of an unmasked texture evaluation (never read)
 _COUNT_CHUNKS = 64        # fixed chunks of the code count (integer sums: any thread count gives the same)
 
 
@@ -175,10 +182,11 @@ def _count_codes(code, n_codes):
 
 
 @njit(parallel=True, **JIT)
-def _select_kernel(code, c, src, out):
+def _fill_kernel(code, c, value, out):
+    """``value`` at the points of material code c, NaN where code < 0, the rest untouched."""
     for i in prange(code.shape[0]):
         if code[i] == c:
-            out[i] = src[i]
+            out[i] = value
         elif code[i] < 0:
             out[i] = np.nan
 
@@ -399,8 +407,16 @@ class Texture:
         out = _out(out, len(p))
         with threads(resolve_threads(nthreads)):
             _texture_kernel(p, n, inv, w, _table(self.seed), float(self.mean), float(self.contrast), k,
-                            float(self.weave_contrast), out)
+                            float(self.weave_contrast), _NO_CODES, -1, out)
         return out
+
+    def _evaluate_where(self, p, n, code, c: int, nthreads: int, out) -> None:
+        """:meth:`evaluate` at the points of material code c only (p, n (N, 3) float64), into ``out``."""
+        inv, w = _octaves(self.wavelength_m, self.octaves, self.hurst)
+        k = 2.0 * np.pi / self.weave_period_m if self.weave_period_m > 0 and self.weave_contrast > 0 else 0.0
+        with threads(nthreads):
+            _texture_kernel(p, n, inv, w, _table(self.seed), float(self.mean), float(self.contrast), k,
+                            float(self.weave_contrast), code, int(c), out)
 
     def evaluate_reference(self, points_map, normals_map) -> np.ndarray:
         """NumPy reference of :meth:`evaluate`."""
@@ -507,11 +523,12 @@ class MaterialMap:
         if self.ground is not None:
             _check_material(self.ground, "ground")
 
-    def evaluate(self, points_map, normals_map, nthreads: int | None = None, out=None, scratch=None,
+    def evaluate(self, points_map, normals_map, nthreads: int | None = None, out=None,
                  index=None, scene=None) -> np.ndarray:
         """Albedo (N,) of surface points (N, 3) with normals (N, 3) [map frame]; NaN where the point is NaN.
 
-        ``out`` and ``scratch`` are optional (N,) float64 buffers (reused from frame to frame).
+        ``out`` is an optional (N,) float64 buffer (reused from frame to frame). Each material is evaluated
+        at its own points only.
         ``index`` (N,) int, the renderer's primitive index of each point (k >= 0: ``scene.primitives[k]``,
         -1: the ground plane, -2: no hit), with ``scene``, applies the scene's own materials first
         (rule 1 of the module docstring).
@@ -542,10 +559,12 @@ class MaterialMap:
         if len(present) == 0:
             out.fill(np.nan)
             return out
-        scratch = _out(scratch, len(p))
-        with threads(n):
-            for c in present:                      # a few materials: evaluating all points beats gathering
-                _select_kernel(code, c, materials[c].evaluate(p, nrm, n, out=scratch), out)
+        for c in present:                          # each material at its own points, written in place
+            if isinstance(materials[c], Uniform):
+                with threads(n):
+                    _fill_kernel(code, int(c), materials[c].albedo, out)
+            else:
+                materials[c]._evaluate_where(p, nrm, code, int(c), n, out)
         return out
 
     def evaluate_reference(self, points_map, normals_map, index=None, scene=None) -> np.ndarray:

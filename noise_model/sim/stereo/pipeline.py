@@ -223,7 +223,6 @@ class StereoD435:
                                     out=(self._buffer("p_map", p.shape), self._buffer("n_map", n.shape)),
                                     shift_x_m=x_cam_m - self.projector.offset_m)
         albedo = self.materials.evaluate(p_map, n_map, self.nthreads, out=self._buffer("albedo", (hs * ws,)),
-                                         scratch=self._buffer("scratch", (hs * ws,)),
                                          index=index[0].reshape(-1) if own else None,
                                          scene=scene if own else None).reshape(hs, ws)
         e_proj = self.projector.irradiance(p, n, occlusion=view, nthreads=self.nthreads,

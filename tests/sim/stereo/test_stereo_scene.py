@@ -88,6 +88,25 @@ def test_texture_and_map_match_their_references(rng):
                                equal_nan=True)
 
 
+def test_material_map_evaluates_each_material_at_its_own_points_only(rng):
+    n = 3000
+    p = rng.uniform([-1, -2, -0.1], [5, 2, 1.5], (n, 3))
+    p[rng.random(n) < 0.4, 2] = 0.0                                   # on the ground plane
+    p[::97] = np.nan
+    nrm = rng.normal(size=(n, 3))
+    box = ((2.5, 0.5, 0.0), (3.5, 1.5, 1.0), MT.Uniform(0.6, "crate"))
+    mm = MT.MaterialMap(default=MT.carpet(), ground=MT.concrete(), regions=(box,))
+    ground = np.isfinite(p).all(axis=1) & (np.abs(p[:, 2]) <= mm.ground_tol_m)
+    crate = np.isfinite(p).all(axis=1) & np.all((p >= box[0]) & (p <= box[1]), axis=1)
+    ground &= ~crate
+    rest = np.isfinite(p).all(axis=1) & ~ground & ~crate
+    for nthreads in (1, 2):
+        got = mm.evaluate(p, nrm, nthreads)
+        np.testing.assert_array_equal(got[ground], MT.concrete().evaluate(p[ground], nrm[ground]))   # to the bit
+        np.testing.assert_array_equal(got[rest], MT.carpet().evaluate(p[rest], nrm[rest]))
+        assert np.all(got[crate] == 0.6) and np.all(np.isnan(got[~np.isfinite(p).all(axis=1)]))
+
+
 def test_material_codes_are_counted_as_bincount(rng):
     for n in (0, 5, 63, 64, 1000):
         code = rng.integers(-1, 4, n).astype(np.int32)
