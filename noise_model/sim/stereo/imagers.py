@@ -25,7 +25,7 @@ Image formation (:func:`render_rates`, :func:`expose`)
 * Each pixel is sampled at ``supersample`` x ``supersample`` points (the caller renders the scene
   at that resolution with :func:`sample_intrinsics`); the lens blur, a Gaussian of
   ``blur_sigma_native_px`` native pixels, is applied at the sample resolution, and the samples of a
-  pixel are averaged (pixel integration).
+  pixel are averaged (pixel integration; :func:`.optics.integrate_samples`).
 * Exposure: manual (``exposure_s``, ``gain``) or auto: the exposure time that brings the left
   image's mean signal to ``ae_target`` of full scale, at most ``max_exposure_s``, then analogue gain
   up to ``max_gain`` (:func:`auto_exposure`).
@@ -48,9 +48,9 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
-from scipy.ndimage import gaussian_filter
 
 from ...numba_config import JIT, resolve_threads, threads
+from .optics import integrate_samples, integrate_samples_reference
 
 __all__ = [
     "ImagerModel", "Exposure", "surface_geometry", "surface_geometry_reference", "sample_intrinsics",
@@ -532,120 +532,6 @@ def signal_rate_reference(albedo, irradiance_w_m2, K_samples, focal_px: float, m
     rel = (1.0 + b2[:, None] + a2[None, :]) ** (-0.5 * model.vignetting_power)
     rate = _rate_constant(focal_px, model) * rho * E * rel
     return np.where(np.isfinite(rate), np.maximum(rate, 0.0), 0.0)
-
-
-#: Largest supersampling whose pixel mean the numba kernel sums in NumPy's order (NumPy sums 8 or more
-#: samples of a row pairwise); larger factors take the NumPy path.
-_KERNEL_MAX_SUPERSAMPLE = 7
-
-
-def _blur_weights(sigma_samples: float) -> np.ndarray:
-    """The normalised Gaussian taps of ``scipy.ndimage.gaussian_filter`` (truncate 4), computed as it does."""
-    radius = int(4.0 * sigma_samples + 0.5)
-    x = np.arange(-radius, radius + 1)
-    phi = np.exp(-0.5 / (sigma_samples * sigma_samples) * x ** 2)
-    return np.ascontiguousarray((phi / phi.sum())[::-1])
-
-
-@njit(**JIT)
-def _blur_row(r, v, wts, acc, prod, pad):
-    """Sample row v of the separable blur (columns of rows v - R .. v + R, then along the row; edges
-    clamped) into ``acc`` (Ws,), in the order of scipy's symmetric correlation:
-    c w_0 + sum over j = -R .. -1 of (x_j + x_-j) w_j. Every addition of a product to the running sum is
-    a loop of its own over stored products, so that no multiply-add is fused and no sum is reordered
-    (the project's fastmath flags allow both within one expression)."""
-    hs, ws = r.shape
-    rad = (wts.shape[0] - 1) // 2
-    for u in range(ws):
-        pad[rad + u] = r[v, u] * wts[rad]
-    for j in range(-rad, 0):
-        above = r[min(max(v + j, 0), hs - 1)]
-        below = r[min(max(v - j, 0), hs - 1)]
-        wj = wts[rad + j]
-        for u in range(ws):
-            prod[u] = (above[u] + below[u]) * wj
-        for u in range(ws):
-            pad[rad + u] += prod[u]
-    for k in range(rad):
-        pad[k] = pad[rad]
-        pad[rad + ws + k] = pad[rad + ws - 1]
-    for u in range(ws):
-        acc[u] = pad[rad + u] * wts[rad]
-    for j in range(-rad, 0):
-        wj = wts[rad + j]
-        for u in range(ws):
-            prod[u] = (pad[rad + u + j] + pad[rad + u - j]) * wj
-        for u in range(ws):
-            acc[u] += prod[u]
-
-
-@njit(parallel=True, **JIT)
-def _integrate_kernel(r, wts, s, out):
-    """Blur and s x s pixel mean; each output row from its own s blurred sample rows (one thread each)."""
-    hs, ws = r.shape
-    h, w = out.shape
-    rad = (wts.shape[0] - 1) // 2
-    for y in prange(h):
-        pad = np.empty(ws + 2 * rad)
-        prod = np.empty(ws)
-        row = np.empty(ws)
-        part = np.empty(w)
-        total = np.empty(w)
-        for i in range(s):
-            _blur_row(r, y * s + i, wts, row, prod, pad)
-            for x in range(w):                     # a row's s samples, left to right (NumPy's order)
-                part[x] = row[x * s]
-            for k in range(1, s):
-                for x in range(w):
-                    part[x] += row[x * s + k]
-            if i == 0:
-                for x in range(w):
-                    total[x] = part[x]
-            else:
-                for x in range(w):
-                    total[x] += part[x]
-        n = float(s * s)
-        for x in range(w):
-            out[y, x] = total[x] / n
-
-
-def integrate_samples(rate_samples, supersample: int, blur_sigma_px: float, nthreads: int | None = None) -> np.ndarray:
-    """Lens blur at the sample resolution, then the mean over each pixel's s x s samples (numba).
-
-    ``blur_sigma_px`` is in output pixels (the sample grid uses s times that): a Gaussian of
-    ``scipy.ndimage.gaussian_filter`` (truncated at 4 sigma, edges extended by the nearest sample),
-    applied along the columns, then the rows. Returns (H, W); the same values as
-    :func:`integrate_samples_reference` to the last bit (the kernel keeps scipy's and NumPy's order of
-    every sum), for any thread count.
-    """
-    s = int(supersample)
-    r = np.ascontiguousarray(rate_samples, dtype=np.float64)
-    if r.ndim != 2:
-        raise ValueError(f"rate_samples must be a 2-D sample image, got shape {r.shape}")
-    hs, ws = r.shape
-    if hs % s or ws % s:
-        raise ValueError(f"sample image {ws}x{hs} is not a multiple of the supersampling {s}")
-    if not (math.isfinite(blur_sigma_px) and blur_sigma_px >= 0):
-        raise ValueError(f"blur_sigma_px must be finite and >= 0, got {blur_sigma_px!r}")
-    if s > _KERNEL_MAX_SUPERSAMPLE:
-        return integrate_samples_reference(r, s, blur_sigma_px)
-    wts = _blur_weights(blur_sigma_px * s) if blur_sigma_px > 0 else np.ones(1)
-    out = np.empty((hs // s, ws // s))
-    with threads(resolve_threads(nthreads)):
-        _integrate_kernel(r, wts, s, out)
-    return out
-
-
-def integrate_samples_reference(rate_samples, supersample: int, blur_sigma_px: float) -> np.ndarray:
-    """NumPy/scipy reference of :func:`integrate_samples` (``gaussian_filter``, then the mean of each block)."""
-    s = int(supersample)
-    r = np.asarray(rate_samples, dtype=np.float64)
-    if blur_sigma_px > 0:
-        r = gaussian_filter(r, sigma=blur_sigma_px * s, mode="nearest", truncate=4.0)
-    hs, ws = r.shape
-    if hs % s or ws % s:
-        raise ValueError(f"sample image {ws}x{hs} is not a multiple of the supersampling {s}")
-    return r.reshape(hs // s, s, ws // s, s).mean(axis=(1, 3))
 
 
 @njit(**JIT)

@@ -31,8 +31,9 @@ from typing import Callable, NamedTuple
 import numpy as np
 
 from ...numba_config import resolve_threads
-from .imagers import Exposure, ImagerModel, auto_exposure, expose, integrate_samples, sample_intrinsics, signal_rate
+from .imagers import Exposure, ImagerModel, auto_exposure, expose, sample_intrinsics, signal_rate
 from .imagers import irradiance_rate, surface_geometry, to_map_frame
+from .optics import integrate_samples
 from .materials import MaterialMap, Texture, Uniform, concrete, white_wall
 from .matcher import MatchResult, disparity_to_depth, match, preset
 from .projector import Projector, ProjectorView
