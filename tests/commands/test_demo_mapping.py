@@ -1,6 +1,7 @@
 """The mapping demo end to end: simulate -> map -> .rrd -> replay gives the same map."""
 
 import numpy as np
+import pytest
 
 from elevmap.cli import main
 from elevmap.commands.demo import run_mapping_demo
@@ -55,3 +56,20 @@ def test_demo_writes_its_picture_beside_the_recording(tmp_path):
     assert summary["png"] == str(png) and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["walk.png", "walk.rrd"]
     assert png.stat().st_size < 300_000
+
+
+def test_demo_on_the_physical_d435_maps_the_same_walk_and_replays_to_the_same_map(tmp_path, capsys):
+    phys = run_mapping_demo(tmp_path / "phys.rrd", seed=1, n_frames=4, show_progress=False, png=False,
+                            sensor="stereo")
+    ref = run_mapping_demo(tmp_path / "ref.rrd", seed=1, n_frames=4, show_progress=False, png=False)
+    assert phys["sensor"] == "stereo" and ref["sensor"] == "reference" and phys["frames"] == 4
+    # the same walk and terrain, seen by another camera: a map as good, from other depth
+    assert phys["error"]["known_cells"] > 1000 and phys["error"]["median_abs_m"] < 0.05
+    assert not np.array_equal(phys["map"].layer("elevation"), ref["map"].layer("elevation"))
+    with RrdSource(tmp_path / "phys.rrd") as src:
+        replayed = run_mapping(src, MappingConfig(), show_progress=False)
+    np.testing.assert_array_equal(replayed["map"].data, phys["map"].data)
+    with pytest.raises(SystemExit) as exc:
+        main(["demo", "--sensor", "lidar", "--rrd", str(tmp_path / "x.rrd")])
+    assert exc.value.code == 2 and "invalid choice: 'lidar'" in capsys.readouterr().err
+    assert not (tmp_path / "x.rrd").exists()
