@@ -57,6 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", default="reference", choices=("reference", "stereo"),
                    help="the D435 that sees the walk: reference (the paper's model draws the noise; default) or "
                         "stereo (the physical D435; about 0.1 s per frame more)")
+    p.add_argument("--model", metavar="MODEL.json",
+                   help="map with this sensor model file from `elevmap characterize` (default: the paper's D435)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     p.add_argument("--frames", type=int, default=None, help="frames of the walk (default: the whole path)")
     p.add_argument("--noise-model", action="store_true",
@@ -376,7 +378,8 @@ def _cmd_demo(args) -> int:
         from .commands.demo import run_mapping_demo
 
         summary = run_mapping_demo(args.rrd, seed=args.seed, n_frames=args.frames, sensor=args.sensor,
-                                   show_progress=not args.no_progress, spawn=args.spawn, overwrite=args.overwrite)
+                                   model=args.model, show_progress=not args.no_progress, spawn=args.spawn,
+                                   overwrite=args.overwrite)
         _print_summary(summary)
         print(f"wrote {args.rrd} and {summary['png']}; {_open_hint(args.rrd)}")
     return 0

@@ -328,7 +328,7 @@ def demo_png_path(rrd_path) -> Path:
 
 def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None, show_progress: bool = True,
                      spawn: bool = False, png: bool = True, overwrite: bool = True,
-                     sensor: str = "reference") -> dict:
+                     sensor: str = "reference", model=None) -> dict:
     """The built-in mapping demo: a simulated robot walks across a box field and up a staircase.
 
     A D435 (424x240, 10 Hz) 0.45 m above the ground and pitched 30 deg down, with the paper's noise
@@ -358,8 +358,11 @@ def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None
     sensor : {"reference", "stereo"}
         The D435 that sees the walk (:class:`elevmap.sources.simulated.SimulatedWalk`): the reference
         simulation, whose noise the paper's model draws (default), or the physical D435 (projector, infrared
-        pair, matching), whose noise emerges. The mapper uses the paper's model with either: on the physical
-        D435 its sigma is larger than the error (docs/calibration.md, "The demo").
+        pair, matching), whose noise emerges. With the paper's model (the default ``model``) the physical
+        D435's map states a sigma larger than its error (docs/calibration.md, "The demo").
+    model : str or os.PathLike, optional
+        A sensor model file of ``elevmap characterize`` to map with (``MappingConfig.sensor_model`` of
+        :mod:`elevmap.pipeline`); default: the paper's D435.
 
     Returns
     -------
@@ -388,7 +391,8 @@ def run_mapping_demo(path="demo.rrd", seed: int = 0, n_frames: int | None = None
             yield f
 
     # the demo's recording is kept and its frames are few: PNG depth keeps the file small at no cost to real time
-    summary = run_mapping(frames(), MappingConfig(png_depth=True), rrd_path=path, spawn=spawn, total=len(src),
+    config = MappingConfig(png_depth=True, sensor_model="" if model is None else str(model))
+    summary = run_mapping(frames(), config, rrd_path=path, spawn=spawn, total=len(src),
                           show_progress=show_progress, application_id="elevmap_demo", notes=notes)
     summary["scene"] = "demo: box field then stairs"
     summary["sensor"] = sensor

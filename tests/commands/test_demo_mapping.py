@@ -73,3 +73,18 @@ def test_demo_on_the_physical_d435_maps_the_same_walk_and_replays_to_the_same_ma
         main(["demo", "--sensor", "lidar", "--rrd", str(tmp_path / "x.rrd")])
     assert exc.value.code == 2 and "invalid choice: 'lidar'" in capsys.readouterr().err
     assert not (tmp_path / "x.rrd").exists()
+
+
+def test_demo_maps_with_a_users_sensor_model(tmp_path):
+    from noise_model import D435
+
+    model = tmp_path / "disp.model.json"
+    D435.with_disparity(0.02).save(model)            # a quarter of the disparity family's usual sigma_d
+    mine = run_mapping_demo(tmp_path / "mine.rrd", seed=1, n_frames=3, show_progress=False, png=False,
+                            sensor="stereo", model=model)
+    paper = run_mapping_demo(tmp_path / "paper.rrd", seed=1, n_frames=3, show_progress=False, png=False,
+                             sensor="stereo")
+    known = mine["map"].is_known() & paper["map"].is_known()
+    assert known.sum() > 1000
+    var_mine, var_paper = mine["map"].layer("variance")[known], paper["map"].layer("variance")[known]
+    assert np.median(var_mine) < np.median(var_paper)            # the model file, not the paper's, was used
