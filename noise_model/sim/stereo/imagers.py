@@ -646,6 +646,19 @@ def expose(rate_ambient, rate_projector, exposure: Exposure, rng: np.random.Gene
     return (dn10 // 4).astype(np.uint8)
 
 
+@njit(inline="always", **JIT)
+def _shift_row_into(out, img, v, dx):
+    """out[u] = row v of ``img`` (H, W) read at column u - dx by linear interpolation, clamped to the row, as
+    :func:`shift_columns` reads it."""
+    w = img.shape[1]
+    for u in range(w):
+        x = u - dx
+        x = min(max(x, 0.0), w - 1.0)
+        x0 = min(int(np.floor(x)), w - 2) if w > 1 else 0
+        t = x - x0
+        out[u] = img[v, x0] * (1.0 - t) + img[v, x0 + 1] * t if w > 1 else img[v, 0]
+
+
 @njit(parallel=True, **JIT)
 def _expected_electrons_kernel(proj, amb, dx, shift, speckle, use_speckle, time_s, lam):
     """lam = max((amb' + proj' g) t, 0) of :func:`expose_reference`, amb' and proj' moved by dx (if ``shift``)
@@ -656,18 +669,8 @@ def _expected_electrons_kernel(proj, amb, dx, shift, speckle, use_speckle, time_
         p = np.empty(w)
         a = np.empty(w)
         if shift:
-            for u in range(w):
-                x = u - dx
-                x = min(max(x, 0.0), w - 1.0)
-                x0 = min(int(np.floor(x)), w - 2) if w > 1 else 0
-                t = x - x0
-                p[u] = proj[v, x0] * (1.0 - t) + proj[v, x0 + 1] * t if w > 1 else proj[v, 0]
-            for u in range(w):
-                x = u - dx
-                x = min(max(x, 0.0), w - 1.0)
-                x0 = min(int(np.floor(x)), w - 2) if w > 1 else 0
-                t = x - x0
-                a[u] = amb[v, x0] * (1.0 - t) + amb[v, x0 + 1] * t if w > 1 else amb[v, 0]
+            _shift_row_into(p, proj, v, dx)
+            _shift_row_into(a, amb, v, dx)
         else:
             for u in range(w):
                 p[u] = proj[v, u]
