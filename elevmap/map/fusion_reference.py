@@ -1,6 +1,6 @@
 """NumPy reference of the per-cell fusion (:func:`elevmap.map.fusion.fuse_frame`): the same checks and update,
 vectorised with ``bincount``, in the order of the module docstring of :mod:`elevmap.map.fusion`. The tests
-hold the compiled pass equal to it; ``ElevationMap(impl="numpy")`` maps with it.
+hold the compiled pass equal to it; ``ElevationMap.update(..., impl="numpy")`` maps with it.
 """
 
 from __future__ import annotations
