@@ -54,6 +54,7 @@ Report (JSON, NaN written as null)::
                         "median_abs_m", "mean_error_m", "flat_coverage_2sigma", "known_cells",
                         "edge_cells", "edge_coverage_1sigma", "edge_coverage_2sigma", "edge_nll",
                         "edge_mean_error_m", "edge_known_fraction", "ms_per_frame_p95", "frames_digest",
+                        "confident_errors" (cells off by > 0.1 m and > 4 sigma: compare_scores.confident_errors),
                         "edge_profile": [{"rings", "cells", "rmse_m", "mean_error_m", "coverage_1sigma",
                                           "coverage_2sigma", "nll_sum", "large_errors"}, ...] (edge_profile),
                         "variance_floor": {"cells", "fraction", "rmse_m", "coverage_1sigma",

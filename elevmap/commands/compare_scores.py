@@ -16,8 +16,16 @@ import numpy as np
 from ..map.elevation_map import ElevationMap
 from ..pipeline import edge_band, map_error
 
-__all__ = ["EDGE_RINGS", "FLOOR_MARGIN", "truth_grid", "score_map", "edge_profile", "floor_profile",
-           "edge_known_fractions", "common_scores", "most_confident", "matched_scores"]
+__all__ = ["EDGE_RINGS", "FLOOR_MARGIN", "CONFIDENT_ERROR_M", "CONFIDENT_ERROR_SIGMAS", "truth_grid", "score_map",
+           "confident_errors", "edge_profile", "floor_profile", "edge_known_fractions", "common_scores",
+           "most_confident", "matched_scores"]
+
+#: A confidently wrong cell (:func:`confident_errors`) is off by more than this [m]: a foothold that much too high
+#: or too low is a missed step for a legged robot (a stair riser is 0.15-0.2 m, a foot's clearance about 0.1 m).
+CONFIDENT_ERROR_M = 0.1
+#: ... and by more than this many of its own sigma: the map's variance did not warn of it (a Gaussian error is
+#: beyond 4 sigma 6e-5 of the time).
+CONFIDENT_ERROR_SIGMAS = 4.0
 
 
 def _cell_scores(h, v, truth, mask) -> dict:
@@ -41,9 +49,33 @@ def truth_grid(emap: ElevationMap, truth) -> np.ndarray:
     return np.asarray(truth(np.column_stack([X.ravel(), Y.ravel()])), dtype=np.float64).reshape(X.shape)
 
 
+def confident_errors(height, variance, truth) -> int:
+    """The known cells that would mislead a controller: off by more than :data:`CONFIDENT_ERROR_M` and by more
+    than :data:`CONFIDENT_ERROR_SIGMAS` of their own sigma.
+
+    The mean NLL weighs such a cell by its log-likelihood, so one of them can outweigh a map (a floor cell held
+    at a landing's height with a sigma of millimetres scores 1e5 nats); this counts them instead.
+
+    Parameters
+    ----------
+    height, variance : ndarray, shape (H, W) [m], [m^2]
+        The map's known layers (NaN where unknown).
+    truth : ndarray, shape (H, W) [m]
+        The true height at the cell centres.
+
+    Returns
+    -------
+    int
+    """
+    known = np.isfinite(height) & np.isfinite(variance) & np.isfinite(truth)
+    e = np.abs(height - truth)[known]
+    return int(np.sum((e > CONFIDENT_ERROR_M) & (e > CONFIDENT_ERROR_SIGMAS * np.sqrt(variance[known]))))
+
+
 def score_map(emap: ElevationMap, truth, times) -> dict:
     """A final map's scores against ``truth`` (:func:`elevmap.pipeline.map_error`'s, the mean sigma, the known
-    fraction) and the median and 95th percentile of ``times`` [ms per frame] (NaN when empty)."""
+    fraction, :func:`confident_errors`) and the median and 95th percentile of ``times`` [ms per frame] (NaN
+    when empty)."""
     err = map_error(emap, truth)
     var = emap.layer("variance")
     known = emap.is_known()
@@ -57,7 +89,9 @@ def score_map(emap: ElevationMap, truth, times) -> dict:
            "flat_coverage_2sigma": err["flat_coverage_2sigma"], "known_cells": err["known_cells"],
            "edge_cells": err["edge_cells"], "edge_coverage_1sigma": err["edge_coverage_1sigma"],
            "edge_coverage_2sigma": err["edge_coverage_2sigma"], "edge_nll": err["edge_nll"],
-           "edge_mean_error_m": err["edge_mean_error_m"], "ms_per_frame_p95": float(np.percentile(t, 95))}
+           "edge_mean_error_m": err["edge_mean_error_m"], "ms_per_frame_p95": float(np.percentile(t, 95)),
+           "confident_errors": confident_errors(emap.known_layer("elevation"), emap.known_layer("variance"),
+                                                truth_grid(emap, truth))}
     return out
 
 

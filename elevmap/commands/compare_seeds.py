@@ -33,6 +33,7 @@ import numpy as np
 
 from .compare import run_compare
 from .compare_output import _fmt, _reality_text, _table
+from .compare_scores import CONFIDENT_ERROR_M, CONFIDENT_ERROR_SIGMAS
 
 __all__ = ["SUMMARY_KEYS", "COVERAGE_2SIGMA_BAND", "COVERAGE_1SIGMA_BAND", "RMSE_TOLERANCE", "run_compare_seeds",
            "summarise", "criteria", "format_seeds_table"]
@@ -41,7 +42,7 @@ __all__ = ["SUMMARY_KEYS", "COVERAGE_2SIGMA_BAND", "COVERAGE_1SIGMA_BAND", "RMSE
 SUMMARY_KEYS = ("rmse_m", "nll", "coverage_1sigma", "coverage_2sigma", "mean_sigma_m", "known_fraction",
                 "flat_rmse_m", "flat_nll", "flat_coverage_2sigma", "edge_rmse_m", "edge_mean_error_m",
                 "edge_coverage_2sigma", "edge_nll", "edge_known_fraction", "p95_abs_m", "ms_per_frame",
-                "common_rmse_m")
+                "common_rmse_m", "confident_errors")
 #: The calibration bands on the median coverages.
 COVERAGE_2SIGMA_BAND = (0.93, 0.97)
 COVERAGE_1SIGMA_BAND = (0.64, 0.73)
@@ -163,8 +164,8 @@ def format_seeds_table(report: dict) -> str:
         return f"{_fmt(v['median'], scale, digits)} [{_fmt(v['min'], scale, digits)}, {_fmt(v['max'], scale, digits)}]"
 
     cols = ("mapper", "RMSE", "common RMSE", "NLL", "cov1s", "cov2s", "mean s", "flat NLL", "edge RMSE", "edge cov2s",
-            "edge known", "criteria")
-    units = ("", "mm", "mm", "", "%", "%", "mm", "", "mm", "%", "%", "")
+            "edge known", "wrong", "criteria")
+    units = ("", "mm", "mm", "", "%", "%", "mm", "", "mm", "%", "%", "cells", "")
     rows = []
     for name, s in report["summary"].items():
         c = report["criteria"][name]
@@ -174,11 +175,13 @@ def format_seeds_table(report: dict) -> str:
                      cell(s, "coverage_1sigma", 100, 1),
                      cell(s, "coverage_2sigma", 100, 1), cell(s, "mean_sigma_m", 1e3, 1), cell(s, "flat_nll", 1, 2),
                      cell(s, "edge_rmse_m", 1e3, 1),
-                     cell(s, "edge_coverage_2sigma", 100, 1), cell(s, "edge_known_fraction", 100, 1), verdict))
+                     cell(s, "edge_coverage_2sigma", 100, 1), cell(s, "edge_known_fraction", 100, 1),
+                     cell(s, "confident_errors", 1, 0), verdict))
     out = [head] + _table(cols, units, rows)
     lo2, hi2 = COVERAGE_2SIGMA_BAND
     out.append(f"criteria on the medians: 2-sigma in [{lo2}, {hi2}], 1-sigma in "
                f"[{COVERAGE_1SIGMA_BAND[0]}, {COVERAGE_1SIGMA_BAND[1]}], the lowest NLL, RMSE within "
                f"{RMSE_TOLERANCE:.0%} of the best mapper's (common RMSE: over the cells every mapper knows; not a "
-               "criterion)")
+               f"criterion); wrong: known cells off by more than {CONFIDENT_ERROR_M:g} m and "
+               f"{CONFIDENT_ERROR_SIGMAS:g} sigma (not a criterion)")
     return "\n".join(out)

@@ -600,6 +600,18 @@ def test_seed_summary_of_the_rmse_on_the_cells_every_mapper_knows():
     assert math.isnan(lone["a"]["common_rmse_m"]["median"])
     assert not criteria(lone)["a"]["common_rmse_within_5pct"]
 
+def test_confidently_wrong_cells_by_hand():
+    from elevmap.commands.compare_scores import confident_errors
+
+    truth = np.zeros((1, 6))
+    # a phantom foothold (1 m off, sigma 2 mm); 0.2 m off but a sigma of 0.1 m (it warned); 0.05 m off at
+    # sigma 1 mm (wrong, but not by a step); 0.15 m off at sigma 3 cm (5 sigma); unknown; exact
+    h = np.array([[1.0, 0.2, 0.05, -0.15, np.nan, 0.0]])
+    v = np.array([[0.002 ** 2, 0.1 ** 2, 0.001 ** 2, 0.03 ** 2, 1e-6, 1e-6]])
+    assert confident_errors(h, v, truth) == 2
+    assert confident_errors(h, v, np.full((1, 6), np.nan)) == 0             # no truth, nothing counted
+
+
 def test_seeds_run_each_seed_and_the_cli(tmp_path, capsys):
     out = tmp_path / "r.json"
     assert main(["compare", "--scene", "boxes", "--frames", "2", "--seeds", "2", "--seed", "3", "--mappers",
@@ -610,7 +622,11 @@ def test_seeds_run_each_seed_and_the_cli(tmp_path, capsys):
     vals = [x["mappers"]["paper"]["rmse_m"] for x in r["runs"]]
     assert r["summary"]["paper"]["rmse_m"]["median"] == pytest.approx(np.median(vals))
     assert set(r["criteria"]) == {"paper", "constant"}
-    assert "medians over the seeds" in capsys.readouterr().out
+    wrong = [x["mappers"]["paper"]["confident_errors"] for x in r["runs"]]
+    assert all(isinstance(w, int) and w >= 0 for w in wrong)
+    assert r["summary"]["paper"]["confident_errors"]["max"] == max(wrong)
+    out_text = capsys.readouterr().out
+    assert "medians over the seeds" in out_text and "wrong: known cells off by more than 0.1 m and 4 sigma" in out_text
     assert main(["compare", "--frames", "1", "--seeds", "0", "--json", str(tmp_path / "x.json"),
                  "--no-progress"]) == 2
     assert main(["compare", "--frames", "1", "--seeds", "2", "--rrd", str(tmp_path / "x.rrd"), "--json",
