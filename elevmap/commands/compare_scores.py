@@ -54,18 +54,8 @@ def confident_errors(height, variance, truth) -> int:
     than :data:`CONFIDENT_ERROR_SIGMAS` of their own sigma.
 
     The mean NLL weighs such a cell by its log-likelihood, so one of them can outweigh a map (a floor cell held
-    at a landing's height with a sigma of millimetres scores 1e5 nats); this counts them instead.
-
-    Parameters
-    ----------
-    height, variance : ndarray, shape (H, W) [m], [m^2]
-        The map's known layers (NaN where unknown).
-    truth : ndarray, shape (H, W) [m]
-        The true height at the cell centres.
-
-    Returns
-    -------
-    int
+    at a landing's height with a sigma of millimetres scores 1e5 nats); this counts them instead. ``height``,
+    ``variance`` and ``truth`` as in :func:`edge_profile` (shape (H, W), NaN where unknown); returns an int.
     """
     known = np.isfinite(height) & np.isfinite(variance) & np.isfinite(truth)
     e = np.abs(height - truth)[known]
