@@ -130,7 +130,8 @@ DEFAULT_CAP = 1.0
 COMPARE_MAX_VARIANCE = 1.0
 #: The keys every mapper's entry of the report has.
 REPORT_KEYS = ("rmse_m", "p95_abs_m", "nll", "coverage_1sigma", "coverage_2sigma", "mean_sigma_m", "edge_rmse_m",
-               "flat_rmse_m", "known_fraction", "ms_per_frame", "edge_coverage_2sigma", "edge_known_fraction")
+               "flat_rmse_m", "known_fraction", "ms_per_frame", "edge_coverage_2sigma", "edge_known_fraction",
+               "confident_errors")
 
 
 @dataclass(frozen=True)

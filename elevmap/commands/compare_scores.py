@@ -57,6 +57,10 @@ def confident_errors(height, variance, truth) -> int:
     at a landing's height with a sigma of millimetres scores 1e5 nats); this counts them instead. ``height``,
     ``variance`` and ``truth`` as in :func:`edge_profile` (shape (H, W), NaN where unknown); returns an int.
     """
+    height, variance, truth = (np.asarray(a, dtype=np.float64) for a in (height, variance, truth))
+    if not height.shape == variance.shape == truth.shape or height.ndim != 2:
+        raise ValueError(f"height, variance and truth must be (H, W) grids of one shape, got {height.shape}, "
+                         f"{variance.shape} and {truth.shape}")
     known = np.isfinite(height) & np.isfinite(variance) & np.isfinite(truth)
     e = np.abs(height - truth)[known]
     return int(np.sum((e > CONFIDENT_ERROR_M) & (e > CONFIDENT_ERROR_SIGMAS * np.sqrt(variance[known]))))

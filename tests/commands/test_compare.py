@@ -610,6 +610,8 @@ def test_confidently_wrong_cells_by_hand():
     v = np.array([[0.002 ** 2, 0.1 ** 2, 0.001 ** 2, 0.03 ** 2, 1e-6, 1e-6]])
     assert confident_errors(h, v, truth) == 2
     assert confident_errors(h, v, np.full((1, 6), np.nan)) == 0             # no truth, nothing counted
+    with pytest.raises(ValueError, match="one shape"):
+        confident_errors(h, v[:, :5], truth)
 
 
 def test_seeds_run_each_seed_and_the_cli(tmp_path, capsys):
